@@ -1,0 +1,108 @@
+"""``detect`` over a whole scan: frames in parallel, then contrast and identity."""
+
+from __future__ import annotations
+
+from concurrent.futures import ThreadPoolExecutor
+from typing import Callable
+
+import numpy as np
+
+from .. import __version__
+from ..scan import Scan
+from .frame import DetectOptions, detect_frame
+from .track import track
+
+MARKERS_FORMAT = "conecal-markers/1"
+
+
+def options_for_scan(scan: Scan, *, threshold: float = 6.0, blur_px: float = 1.0,
+                     diameter_px: tuple[float, float] | None = None) -> DetectOptions:
+    """Expected shadow sizes from ``markers.diameter(s)`` and the nominal
+    magnification, widened for depth changes (x0.6 .. x1.6)."""
+    if diameter_px is None:
+        cfg = scan.config
+        if cfg.markers is None:
+            from ..errors import InputError
+            raise InputError(f"{scan.root / 'scan.yaml'}: markers: this scan declares no markers (give --diameter-px)")
+        ds = cfg.markers.diameters or (cfg.markers.diameter,)
+        m = cfg.nominal.sdd / cfg.nominal.sod
+        pitch = float(np.sqrt(cfg.detector.pixel_pitch[0] * cfg.detector.pixel_pitch[1]))
+        px = [d * m / pitch for d in ds]
+        diameter_px = (0.6 * min(px), 1.6 * max(px))
+    return DetectOptions(diameter_px=tuple(float(d) for d in diameter_px), threshold=threshold, blur_px=blur_px)
+
+
+def kinematic_predictor(scan: Scan):
+    """Image motion predicted from the log and the nominal kinematics.
+
+    A marker seen at ``xy`` in frame ``k1`` is placed on its ray at the
+    depth of the sample origin, carried to frame ``k2`` by the nominal
+    transforms and projected. Exact for a sphere at the sample origin,
+    approximate elsewhere (good enough for a gate).
+    """
+    try:
+        T = scan.nominal_transforms()
+    except Exception:  # a log the nominal kinematics cannot read: no prediction
+        return None
+    g = scan.nominal_geometry()
+    Tinv = T.inverse()
+
+    def predict(k1, xy, k2):
+        D = g.detector_point(xy[0], xy[1])
+        d = D - g.source
+        d /= np.linalg.norm(d)
+        O = T.t[k1]
+        X = g.source + np.dot(O - g.source, d) * d
+        Xs = Tinv[k1].apply(X)
+        return g.project(T[k2].apply(Xs))
+
+    return predict
+
+
+def detect_scan(scan: Scan, opt: DetectOptions, *, workers: int = 2,
+                progress: Callable[[int, int], None] | None = None) -> dict:
+    """Detect, filter and track markers in every frame; returns a
+    ``conecal-markers/1`` document (frames in log order)."""
+    frames_idx = [int(f) for f in scan.log.frame]
+
+    def one(k):
+        return detect_frame(scan.stack.read(k), opt)
+
+    results = []
+    with ThreadPoolExecutor(max_workers=max(1, workers)) as ex:
+        for n, res in enumerate(ex.map(one, frames_idx), 1):
+            results.append(res)
+            if progress:
+                progress(n, len(frames_idx))
+    # Ghosts (detector lag) and faint blobs are sphere-shaped but far weaker
+    # than the scan's markers, measured as attenuation per px of chord.
+    mus = np.array([b.mu_px for res in results for b in res if not b.flags])
+    if mus.size == 0:
+        mus = np.array([b.mu_px for res in results for b in res])
+    ref = float(np.median(mus)) if mus.size else 0.0
+    results = [[b for b in res if b.mu_px >= opt.min_relative_contrast * ref] for res in results]
+    robot = scan.config.motion == "robot"
+    # A robot re-places the holder with mm-level jumps between frames, so image
+    # tracks are not identities there: fit-pose assigns phantom ids instead.
+    ids, spans = track(results, predictor=kinematic_predictor(scan),
+                       kinematic_first=scan.config.motion == "linear")
+    frames = []
+    rows, cols = scan.stack.shape
+    for k, res, fid in zip(frames_idx, results, ids):
+        markers = [{"id": None if robot else int(i), "x": round(b.x, 6), "y": round(b.y, 6), "sigma": round(b.sigma, 6),
+                    "radius": round(b.radius, 4), "contrast": round(b.peak, 5), "flags": sorted(b.flags)}
+                   for b, i in sorted(zip(res, fid), key=lambda t: (t[1], t[0].x))]
+        seen = set(fid)
+        pos = len(frames)
+        missing = [] if robot else sorted(i for i, (a, z) in spans.items() if a < pos < z and i not in seen)
+        frames.append({"frame": k, "markers": markers, "missing": missing})
+    return {"format": MARKERS_FORMAT, "software": f"conecal {__version__}",
+            "centre": "attenuation centroid of the sphere shadow (predict with conecal.geometry.shadow_centroid)",
+            "units": {"x": "px (column)", "y": "px (row)", "sigma": "px, 1 sigma", "radius": "px",
+                      "contrast": "attenuation above background"},
+            "detector": {"shape": [rows, cols]},
+            "options": {"diameter_px": list(opt.diameter_px), "threshold": opt.threshold, "blur_px": opt.blur_px,
+                        "max_anisotropy": opt.max_anisotropy, "min_relative_contrast": opt.min_relative_contrast},
+            "reference_mu_px": round(ref, 6),
+            "identities": "phantom ids are assigned by fit-pose" if robot else "tracked across frames",
+            "n_ids": 0 if robot else len(spans), "frames": frames}

@@ -1,0 +1,84 @@
+"""Atomic, versioned, deterministic JSON output and checked JSON input."""
+
+from __future__ import annotations
+
+import json
+import os
+import tempfile
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from .errors import FormatVersionError, InputError
+
+
+def _plain(obj: Any) -> Any:
+    if isinstance(obj, dict):
+        return {str(k): _plain(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [_plain(v) for v in obj]
+    if isinstance(obj, np.ndarray):
+        return _plain(obj.tolist())
+    if isinstance(obj, np.generic):
+        return obj.item()
+    if isinstance(obj, float) and not np.isfinite(obj):
+        return None  # JSON has no NaN; null says "not determined"
+    return obj
+
+
+def atomic_write_text(path: str | os.PathLike, text: str) -> None:
+    """Write ``text`` to ``path`` via a temporary file in the same folder and a
+    rename, so that readers (and ``make -j``) never see a partial file."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    try:
+        with os.fdopen(fd, "w", encoding="utf-8") as fh:
+            fh.write(text)
+            fh.flush()
+            os.fsync(fh.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        try:
+            os.unlink(tmp)
+        except FileNotFoundError:
+            pass
+        raise
+
+
+def dumps(doc: dict) -> str:
+    """Serialise with sorted keys; numpy values become plain JSON."""
+    if "format" not in doc:
+        raise ValueError("every conecal output states its format version")
+    return json.dumps(_plain(doc), sort_keys=True, indent=1) + "\n"
+
+
+def write_json(path: str | os.PathLike, doc: dict) -> None:
+    atomic_write_text(path, dumps(doc))
+
+
+def read_json(path: str | os.PathLike, expected: str | tuple[str, ...]) -> dict:
+    """Read a conecal JSON file and check its ``format`` key.
+
+    ``expected`` is a format name without version (``conecal-markers``) or a
+    tuple of them. Version 1 is the only one this conecal reads; a newer one
+    asks the user to upgrade.
+    """
+    path = Path(path)
+    expected = (expected,) if isinstance(expected, str) else expected
+    try:
+        doc = json.loads(path.read_text(encoding="utf-8"))
+    except FileNotFoundError:
+        raise InputError(f"{path}: file not found") from None
+    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+        raise InputError(f"{path}: not valid JSON ({exc})") from None
+    fmt = doc.get("format") if isinstance(doc, dict) else None
+    if not isinstance(fmt, str) or "/" not in fmt:
+        raise InputError(f"{path}: key 'format' missing; expected one of {', '.join(e + '/1' for e in expected)}")
+    name, _, version = fmt.partition("/")
+    if name not in expected:
+        raise InputError(f"{path}: format is {fmt!r}, expected one of {', '.join(e + '/1' for e in expected)}")
+    if version != "1":
+        raise FormatVersionError(f"{path}: format {fmt!r} is newer than this conecal reads ({name}/1); upgrade conecal")
+    return doc

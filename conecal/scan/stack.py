@@ -1,0 +1,134 @@
+"""Lazy projection stacks: a multi-page TIFF or a folder of single-page TIFFs.
+
+Frames are read one at a time and converted to attenuation ``-ln(I/I0)``;
+memory stays bounded by the frames in flight, never the whole stack. Each
+thread gets its own file handle so that frames can be read in parallel.
+"""
+
+from __future__ import annotations
+
+import threading
+from pathlib import Path
+
+import numpy as np
+import tifffile
+
+from ..errors import InputError
+
+# Transmission is floored here before the log: a zero count is real data
+# (a dead pixel, a fully opaque spot), not a reason to fail.
+_T_FLOOR = 1e-6
+
+
+def _read_mean_image(path: Path, shape) -> np.ndarray:
+    try:
+        with tifffile.TiffFile(path) as tf:
+            acc = None
+            for k, page in enumerate(tf.pages):
+                img = page.asarray().astype(np.float64)
+                if img.shape != tuple(shape):
+                    raise InputError(f"{path}: page {k}: shape {img.shape}, expected {tuple(shape)} (rows, cols)")
+                acc = img if acc is None else acc + img
+            if acc is None:
+                raise InputError(f"{path}: no image pages")
+            return (acc / len(tf.pages)).astype(np.float32)
+    except FileNotFoundError:
+        raise InputError(f"{path}: file not found") from None
+    except InputError:
+        raise
+    except Exception as exc:  # tifffile raises many kinds for damaged files
+        raise InputError(f"{path}: unreadable TIFF ({type(exc).__name__}: {exc})") from None
+
+
+class ProjectionStack:
+    """Read-only access to frame ``k`` of a scan, as float32 attenuation.
+
+    Parameters
+    ----------
+    path : a multi-page TIFF, or a folder of TIFFs (sorted by name).
+    shape : (rows, cols) every frame must have.
+    values : 'attenuation', 'transmission' or 'raw'.
+    flat, dark : paths for 'raw' (multi-page stacks are averaged).
+    """
+
+    def __init__(self, path, shape, values="attenuation", flat=None, dark=None):
+        self.path = Path(path)
+        self.shape = tuple(int(s) for s in shape)
+        self.values = values
+        self._local = threading.local()
+        if self.path.is_dir():
+            self._files = sorted(p for p in self.path.iterdir() if p.suffix.lower() in (".tif", ".tiff"))
+            if not self._files:
+                raise InputError(f"{self.path}: folder holds no .tif files")
+            self._n = len(self._files)
+        elif self.path.is_file():
+            self._files = None
+            try:
+                with tifffile.TiffFile(self.path) as tf:
+                    self._n = len(tf.pages)
+            except Exception as exc:
+                raise InputError(f"{self.path}: unreadable TIFF ({type(exc).__name__}: {exc})") from None
+            if self._n == 0:
+                raise InputError(f"{self.path}: no image pages")
+        else:
+            raise InputError(f"{self.path}: file not found")
+        self._flat = self._dark = None
+        if values == "raw":
+            self._dark = _read_mean_image(Path(dark), self.shape)
+            flat_img = _read_mean_image(Path(flat), self.shape)
+            gain = flat_img - self._dark
+            if np.any(gain <= 0):
+                k = np.flatnonzero(gain.reshape(-1) <= 0)[0]
+                r, c = divmod(int(k), self.shape[1])
+                raise InputError(f"{flat}: pixel (row {r}, col {c}) is not brighter than the dark image")
+            self._flat = gain
+
+    def __len__(self) -> int:
+        return self._n
+
+    def _handle(self) -> tifffile.TiffFile:
+        tf = getattr(self._local, "tf", None)
+        if tf is None:
+            tf = tifffile.TiffFile(self.path)
+            self._local.tf = tf
+        return tf
+
+    def read_raw(self, k: int) -> np.ndarray:
+        """Frame ``k`` as stored (no conversion)."""
+        if not 0 <= k < self._n:
+            raise IndexError(f"frame {k} out of range 0..{self._n - 1}")
+        where = self._files[k] if self._files is not None else self.path
+        try:
+            if self._files is not None:
+                img = tifffile.imread(self._files[k])
+            else:
+                img = self._handle().pages[k].asarray()
+        except Exception as exc:
+            raise InputError(f"{where}: frame {k}: truncated or unreadable ({type(exc).__name__}: {exc})") from None
+        if img.shape != self.shape:
+            raise InputError(f"{where}: frame {k}: shape {img.shape}, scan.yaml says {self.shape} (rows, cols)")
+        return img
+
+    def read(self, k: int) -> np.ndarray:
+        """Frame ``k`` as float32 attenuation; raises on NaN/inf pixels."""
+        img = self.read_raw(k)
+        a = np.asarray(img, dtype=np.float32)
+        if not np.isfinite(a).all():
+            bad = np.flatnonzero(~np.isfinite(a.reshape(-1)))[0]
+            r, c = divmod(int(bad), self.shape[1])
+            where = self._files[k] if self._files is not None else self.path
+            raise InputError(f"{where}: frame {k}: pixel (row {r}, col {c}) is {a[r, c]}")
+        if self.values == "attenuation":
+            return a
+        if self.values == "raw":
+            a = (a - self._dark) / self._flat
+        np.maximum(a, _T_FLOOR, out=a)
+        np.log(a, out=a)
+        np.negative(a, out=a)
+        return a
+
+    def close(self) -> None:
+        tf = getattr(self._local, "tf", None)
+        if tf is not None:
+            tf.close()
+            self._local.tf = None
