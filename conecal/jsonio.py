@@ -82,3 +82,22 @@ def read_json(path: str | os.PathLike, expected: str | tuple[str, ...]) -> dict:
     if version != "1":
         raise FormatVersionError(f"{path}: format {fmt!r} is newer than this conecal reads ({name}/1); upgrade conecal")
     return doc
+
+
+def rounded(obj: Any, digits: int = 12) -> Any:
+    """Round every float to ``digits`` significant digits, so that outputs do
+    not change with the last bits of a BLAS call."""
+    if isinstance(obj, dict):
+        return {k: rounded(v, digits) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [rounded(v, digits) for v in obj]
+    if isinstance(obj, np.ndarray):
+        return rounded(obj.tolist(), digits)
+    if isinstance(obj, (float, np.floating)):
+        v = float(obj)
+        if not np.isfinite(v) or v == 0.0:
+            return v
+        return float(f"{v:.{digits}g}")
+    if isinstance(obj, np.integer):
+        return int(obj)
+    return obj

@@ -34,6 +34,9 @@ class DetectOptions:
     min_relative_contrast : fraction of the scan's median sphere attenuation
         coefficient below which a blob is a ghost or a faint blob, not a marker.
     blur_px : expected blur sigma of the system, widens the windows.
+    max_attenuation : pixels above it are not measurements (outside a
+        circular field of view, dead or saturated); shadows touching them
+        are flagged truncated, or dropped when mostly hidden.
     """
 
     diameter_px: tuple[float, float]
@@ -41,6 +44,9 @@ class DetectOptions:
     max_anisotropy: float = 1.25
     min_relative_contrast: float = 0.35
     blur_px: float = 1.0
+    # attenuation beyond which a pixel is dead, saturated or outside a
+    # circular field of view (transmission below 1.8 %)
+    max_attenuation: float = 4.0
 
     @property
     def factor(self) -> int:
@@ -59,13 +65,17 @@ class Blob:
     anisotropy: float
     flags: list
     snr: float
+    profile_misfit: float = 0.0   # |b - best chord profile| / |b| in the window
 
 
-def candidates(a: np.ndarray, opt: DetectOptions):
+def candidates(a: np.ndarray, opt: DetectOptions, invalid: np.ndarray | None = None):
     """Candidates (x, y, height/noise) in full-resolution px, strongest first,
     and the pixel noise sigma of the (downsampled) frame."""
     f = opt.factor
     rows, cols = a.shape
+    if invalid is not None:
+        # dead regions become plain background, so their borders raise no peaks
+        a = np.where(invalid, np.float32(np.median(a[~invalid]) if (~invalid).any() else 0.0), a)
     small = cv2.resize(a, (cols // f, rows // f), interpolation=cv2.INTER_AREA) if f > 1 else a
     kd = int(np.ceil(opt.diameter_px[1] * 1.5 / f)) | 1
     kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (kd, kd))
@@ -131,7 +141,8 @@ def _plane_fit(X, Y, Z, iters=3, quadratic=False):
     return p, float(sig), keep, A
 
 
-def refine(a: np.ndarray, x0: float, y0: float, r0: float, opt: DetectOptions, others=(), noise: float = 0.0) -> Blob | None:
+def refine(a: np.ndarray, x0: float, y0: float, r0: float, opt: DetectOptions, others=(), noise: float = 0.0,
+           invalid: np.ndarray | None = None) -> Blob | None:
     """Sub-pixel centroid of the sphere shadow near (x0, y0) with radius guess r0.
 
     ``others``: (x, y, r) of neighbouring candidates, masked out of the background annulus.
@@ -141,7 +152,8 @@ def refine(a: np.ndarray, x0: float, y0: float, r0: float, opt: DetectOptions, o
     x, y, r = x0, y0, r0
     flags = []
     blob = None
-    for it in range(4):
+    sized = False
+    for it in range(6):
         rw = 1.15 * r + 3 * opt.blur_px + 1.5      # centroid window
         r_in = rw + 1.0
         r_out = r_in + max(4.0, 0.4 * r)
@@ -156,15 +168,46 @@ def refine(a: np.ndarray, x0: float, y0: float, r0: float, opt: DetectOptions, o
         dx, dy = xx - x, yy - y
         rho2 = dx * dx + dy * dy
         ring = (rho2 >= r_in**2) & (rho2 <= r_out**2)
+        masked = ring.copy()
         for ox, oy, orad in others:
-            ring &= (xx - ox) ** 2 + (yy - oy) ** 2 > (1.15 * orad + 3 * opt.blur_px + 2) ** 2
+            masked &= (xx - ox) ** 2 + (yy - oy) ** 2 > (1.15 * orad + 3 * opt.blur_px + 2) ** 2
+        # neighbours are left out of the background unless that leaves too little of it
+        full_ring = int(ring.sum())
+        if masked.sum() >= 0.3 * full_ring:
+            ring = masked
+        hidden = 0.0
+        if invalid is not None:
+            inv = invalid[q0:q1, c0:c1]
+            ring &= ~inv
+            win0 = rho2 <= rw**2
+            hidden = float(inv[win0].mean())
+            if hidden > 0.2:
+                return None  # mostly outside the field of view: not measurable
         if ring.sum() < 12:
             return None
-        quad = ring.sum() > 150
+        # a quadratic background extrapolates well only from a nearly whole ring
+        quad = ring.sum() > 150 and ring.sum() >= 0.85 * full_ring
         p, sig_bg, keep, _ = _plane_fit(dx[ring], dy[ring], roi[ring], quadratic=quad)
         b = roi - (_background_design(dx.ravel(), dy.ravel(), quad) @ p).reshape(roi.shape)
         win = rho2 <= rw**2
         w = b[win]
+        if not sized:
+            # size first, from the half-maximum area: a chord profile exceeds
+            # half its peak inside rho < R sqrt(3)/2, whatever the window
+            sm = cv2.blur(b.astype(np.float32), (3, 3))
+            near = rho2 <= (0.5 * r + 2) ** 2
+            peak = float(sm[near].max()) if near.any() else 0.0
+            if peak <= 0:
+                return None
+            hm = (sm > peak / 2).astype(np.uint8)
+            n, lab = cv2.connectedComponents(hm)
+            iy, ix = np.unravel_index(np.argmax(np.where(near, sm, -np.inf)), sm.shape)
+            area = float((lab == lab[iy, ix]).sum())
+            r_half = float(np.sqrt(area / (0.75 * np.pi)))
+            sized = True
+            r = float(np.clip(r_half, 0.25 * opt.diameter_px[0], opt.diameter_px[1]))
+            x, y = c0 + (lab == lab[iy, ix]).nonzero()[1].mean(), q0 + (lab == lab[iy, ix]).nonzero()[0].mean()
+            continue
         V = w.sum()
         if V <= 0:
             return None
@@ -184,7 +227,7 @@ def refine(a: np.ndarray, x0: float, y0: float, r0: float, opt: DetectOptions, o
         l1, l2 = tr / 2 + disc, tr / 2 - disc
         aniso = float(np.sqrt(l1 / l2)) if l2 > 0 else np.inf
         converged = abs(mx) < 1e-3 and abs(my) < 1e-3 and abs(r_new - r) < 0.02 * r
-        r = float(np.clip(r_new, 0.5 * r0, 2.0 * r0)) if it == 0 else r_new
+        r = r_new
         if not (0.25 * opt.diameter_px[0] <= r <= 1.0 * opt.diameter_px[1]):
             return None
         # noise per pixel grows with attenuation: var ~ exp(a) / N0
@@ -204,12 +247,32 @@ def refine(a: np.ndarray, x0: float, y0: float, r0: float, opt: DetectOptions, o
             excess = np.sqrt(sig_bg**2 - noise**2)
             sigma2 += (0.5 * excess * np.abs(ex).sum() / V) ** 2
         sigma = float(np.sqrt(sigma2))
+        if converged or it == 5:
+            # A sphere shadow is point-symmetric about its centroid; the odd part
+            # under reflection measures what else lies in the window (a faint
+            # blob, a ghost, a rod) and bounds the bias it causes.
+            M = cv2.getRotationMatrix2D((float(x - c0), float(y - q0)), 180.0, 1.0)
+            refl = cv2.warpAffine(b.astype(np.float32), M, (b.shape[1], b.shape[0]), flags=cv2.INTER_LINEAR,
+                                  borderMode=cv2.BORDER_REPLICATE)
+            win2 = (xx - x) ** 2 + (yy - y) ** 2 <= rw**2
+            odd = 0.5 * (b - refl)[win2]
+            s_odd = (sig_bg * np.exp(np.clip(b[win2], 0, 8) / 2)) / np.sqrt(2.0)
+            rho = np.sqrt((xx - x) ** 2 + (yy - y) ** 2)[win2]
+            excess = np.maximum(np.abs(odd) - 3 * s_odd, 0.0)
+            asym = float((rho * excess).sum() / V)
+            if asym > 3 * np.sqrt(sigma2) and asym > 0.02:
+                clutter = True
+                sigma2 += asym**2
+                sigma = float(np.sqrt(sigma2))
+        g = 2 * np.sqrt(np.maximum(r * r - (ex * ex + ey * ey), 0.0))
+        gg = float((g * g).sum())
+        misfit = float(np.sqrt(((w - (w @ g) / gg * g) ** 2).sum() / max((w * w).sum(), 1e-30))) if gg > 0 else 1.0
         peak = float(np.percentile(w, 99.5)) if w.size > 50 else float(w.max())
         mu_px = 1.5 * V / (np.pi * r * r) / (2 * r)   # V = 4/3 pi R^3 mu
-        flags = ["truncated"] if truncated or rw > min(x, y, cols - 1 - x, rows - 1 - y) else []
+        flags = ["truncated"] if truncated or hidden > 0 or rw > min(x, y, cols - 1 - x, rows - 1 - y) else []
         if clutter:
             flags.append("clutter")
-        blob = Blob(float(x), float(y), r, sigma, float(mu_px), peak, aniso, flags, float(peak / sig_bg))
+        blob = Blob(float(x), float(y), r, sigma, float(mu_px), peak, aniso, flags, float(peak / sig_bg), misfit)
         if converged:
             break
     return blob
@@ -217,11 +280,16 @@ def refine(a: np.ndarray, x0: float, y0: float, r0: float, opt: DetectOptions, o
 
 def detect_frame(a: np.ndarray, opt: DetectOptions) -> list[Blob]:
     """All sphere-like shadows in attenuation frame ``a`` (not yet filtered by contrast)."""
-    cands, noise = candidates(a, opt)
+    invalid = a > opt.max_attenuation
+    if not invalid.any():
+        invalid = None
+    else:
+        invalid = cv2.dilate(invalid.astype(np.uint8), np.ones((5, 5), np.uint8)).astype(bool)
+    cands, noise = candidates(a, opt, invalid)
     noise *= opt.factor  # the downsampled frame averages factor**2 pixels
     r_guess = opt.diameter_px[0] / 2 if opt.diameter_px[1] / opt.diameter_px[0] < 1.6 else np.mean(opt.diameter_px) / 2
     blobs: list[Blob] = []
-    rough = [(cx, cy, r_guess) for cx, cy, _ in cands]
+    rough = [(cx, cy, opt.diameter_px[0] / 2) for cx, cy, _ in cands]
     for i, (cx, cy, h) in enumerate(cands):
         # a candidate inside an accepted blob is the same sphere
         if any((cx - b.x) ** 2 + (cy - b.y) ** 2 < (0.8 * b.radius) ** 2 for b in blobs):
@@ -229,7 +297,7 @@ def detect_frame(a: np.ndarray, opt: DetectOptions) -> list[Blob]:
         others = [o for j, o in enumerate(rough) if j != i and (o[0] - cx) ** 2 + (o[1] - cy) ** 2 < (4 * opt.diameter_px[1]) ** 2]
         others = [o for o in others if not any((o[0] - b.x) ** 2 + (o[1] - b.y) ** 2 < (0.8 * b.radius) ** 2 for b in blobs)] + \
                  [(b.x, b.y, b.radius) for b in blobs]
-        b = refine(a, cx, cy, r_guess, opt, others, noise)
+        b = refine(a, cx, cy, r_guess, opt, others, noise, invalid)
         if b is None or b.snr < opt.threshold:
             continue
         if any((b.x - o.x) ** 2 + (b.y - o.y) ** 2 < (0.8 * o.radius) ** 2 for o in blobs):
@@ -245,7 +313,11 @@ def detect_frame(a: np.ndarray, opt: DetectOptions) -> list[Blob]:
                         b.flags.append("overlap")
     kept = []
     for b in blobs:
-        if b.anisotropy > opt.max_anisotropy and "overlap" not in b.flags and "truncated" not in b.flags:
-            continue  # rods, edges, irregular clutter
+        if b.anisotropy > opt.max_anisotropy and not set(b.flags) & {"overlap", "truncated", "clutter"}:
+            continue  # rods, edges, irregular blobs on a clean background
+        if b.anisotropy > 2.0:
+            continue  # not a sphere shadow even allowing for what lies across it
+        if "clutter" in b.flags and b.profile_misfit > 0.2 + 1.5 / b.radius:
+            continue  # a dense irregular blob (bone, debris), not a dome-shaped sphere shadow
         kept.append(b)
     return kept

@@ -2,7 +2,7 @@
 
 The shadow outline of a sphere is the section of the cone tangent to it: an
 ellipse whose centre is *not* the projection of the sphere centre
-(Clackdoyle & Mennessier 2011; the offset grows like ``e * A / (pi * f)``
+(Clackdoyle & Mennessier 2011; the offset grows like ``e * A / (pi * f^2)``
 with ``e`` the distance from the principal point, ``A`` the ellipse area
 and ``f`` the source-to-detector distance). ``conecal detect`` measures the
 centroid of the attenuation (line-integral) image of each sphere, which is

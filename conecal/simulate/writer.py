@@ -28,6 +28,12 @@ from .scenarios import Scenario, marker_truth
 DARK_LEVEL = 100.0
 
 
+def _umask() -> int:
+    mask = os.umask(0)
+    os.umask(mask)
+    return mask
+
+
 def expose(sc: Scenario, line_integrals: np.ndarray, rng: np.random.Generator, previous_T: np.ndarray | None = None):
     """Turn line integrals into a transmission image as the detector records it.
 
@@ -62,7 +68,9 @@ def expose(sc: Scenario, line_integrals: np.ndarray, rng: np.random.Generator, p
 
 def _stored(T: np.ndarray, values: str, photons: float) -> np.ndarray:
     if values == "attenuation":
-        return (-np.log(np.maximum(T, 0.5 / max(photons, 1.0)))).astype(np.float32)
+        # half a photon is the floor of a noisy zero count; a noiseless image has none
+        floor = 0.5 / photons if photons > 0 else 1e-12
+        return (-np.log(np.maximum(T, floor))).astype(np.float32)
     if values == "transmission":
         return T.astype(np.float32)
     return (T * photons + DARK_LEVEL).astype(np.float32)
@@ -126,6 +134,7 @@ def write_scan(sc: Scenario, out: str | Path, *, seed: int = 0, values: str = "a
                              for i, p, r in zip(sc.sphere_ids, sc.sphere_positions, sc.sphere_radii)],
                  "frames": frames_truth, **sc.truth_extra}
         (tmp / "truth.json").write_text(dumps(truth), encoding="utf-8")
+        os.chmod(tmp, 0o777 & ~_umask())
         if out.exists():
             shutil.rmtree(out)
         os.replace(tmp, out)

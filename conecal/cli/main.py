@@ -1,0 +1,54 @@
+"""The ``conecal`` command: a group of thin subcommands.
+
+Errors are translated to exit codes here and only here: bad usage or input
+-> 2, a failed fit or other run-time failure -> 1, interrupted -> 130.
+"""
+
+from __future__ import annotations
+
+import sys
+
+import click
+
+from .. import __version__
+from ..errors import FitError, InputError
+
+
+class ConecalGroup(click.Group):
+    def invoke(self, ctx):
+        try:
+            return super().invoke(ctx)
+        except InputError as exc:
+            click.echo(f"Error: {exc}", err=True)
+            sys.exit(2)
+        except FitError as exc:
+            click.echo(f"Fit failed: {exc}", err=True)
+            sys.exit(1)
+        except KeyboardInterrupt:
+            click.echo("Interrupted; no output was written.", err=True)
+            sys.exit(130)
+
+
+@click.group(cls=ConecalGroup, context_settings={"help_option_names": ["-h", "--help"]})
+@click.version_option(__version__, prog_name="conecal")
+@click.option("-v", "--verbose", count=True, help="More messages (repeatable).")
+@click.option("-q", "--quiet", is_flag=True, help="Only errors.")
+@click.pass_context
+def cli(ctx, verbose, quiet):
+    """Geometry calibration of cone-beam X-ray CT systems.
+
+    Units: mm and degrees in files and on the command line; pixel
+    coordinates (column, row) with the centre of img[0, 0] at (0, 0).
+    """
+    ctx.ensure_object(dict)
+    ctx.obj["verbosity"] = -1 if quiet else verbose
+
+
+def _register():
+    from . import detect, fit_linear, report, simulate
+
+    for mod in (simulate, detect, fit_linear, report):
+        cli.add_command(mod.command)
+
+
+_register()

@@ -1,0 +1,48 @@
+"""Options and helpers shared by the subcommands (who uses what is noted)."""
+
+from __future__ import annotations
+
+import contextlib
+import sys
+
+import click
+
+# detect, fit-*, report: where the result goes
+output_option = click.option("-o", "--output", "output", required=True, type=click.Path(dir_okay=False),
+                             help="Output JSON file (written atomically).")
+# detect, simulate: threads for frames
+workers_option = click.option("--workers", type=click.IntRange(1, 64), default=2, show_default=True,
+                              help="Frames processed in parallel.")
+
+
+def verbosity() -> int:
+    ctx = click.get_current_context(silent=True)
+    while ctx is not None and ctx.parent is not None:
+        ctx = ctx.parent
+    return (ctx.obj or {}).get("verbosity", 0) if ctx is not None else 0
+
+
+def info(msg: str) -> None:
+    """Print a line to stderr unless -q."""
+    if verbosity() >= 0:
+        click.echo(msg, err=True)
+
+
+@contextlib.contextmanager
+def progress_bar(description: str):
+    """Yield a ``progress(done, total)`` callback drawing a rich bar on a
+    terminal (stderr); silent when -q or when stderr is not a terminal."""
+    if verbosity() < 0 or not sys.stderr.isatty():
+        yield None
+        return
+    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
+    from rich.console import Console
+
+    with Progress(TextColumn("[bold]{task.description}"), BarColumn(), MofNCompleteColumn(), TimeRemainingColumn(),
+                  console=Console(stderr=True), transient=False) as prog:
+        task = prog.add_task(description, total=None)
+
+        def update(done, total):
+            prog.update(task, completed=done, total=total)
+
+        yield update
