@@ -14,8 +14,8 @@ from .options import info, output_option, progress_bar, workers_option
 @click.argument("scan", type=click.Path())
 @output_option
 @workers_option
-@click.option("--threshold", type=click.FloatRange(2), default=6.0, show_default=True,
-              help="Candidate height in noise sigmas.")
+@click.option("--threshold", type=click.FloatRange(2), default=10.0, show_default=True,
+              help="Candidate height in noise sigmas (lower it for low-dose scans).")
 @click.option("--blur-px", type=click.FloatRange(0), default=1.0, show_default=True,
               help="Expected system blur (Gaussian sigma, px); widens the windows.")
 @click.option("--diameter-px", type=(float, float), default=None, metavar="MIN MAX",

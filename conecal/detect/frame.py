@@ -23,13 +23,16 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
+from . import kernels
+
 
 @dataclass(frozen=True)
 class DetectOptions:
     """Settings of the detector (px unless stated).
 
     diameter_px : (min, max) expected shadow diameters, full-resolution px.
-    threshold : candidate peak height in noise sigmas (downsampled top-hat).
+    threshold : candidate peak height in noise sigmas (smoothed, downsampled top-hat).
+    min_snr : smallest shadow peak over background noise (full resolution).
     max_anisotropy : largest ratio of the principal second moments for a sphere.
     min_relative_contrast : fraction of the scan's median sphere attenuation
         coefficient below which a blob is a ghost or a faint blob, not a marker.
@@ -40,7 +43,8 @@ class DetectOptions:
     """
 
     diameter_px: tuple[float, float]
-    threshold: float = 6.0
+    threshold: float = 10.0
+    min_snr: float = 5.0
     max_anisotropy: float = 1.25
     min_relative_contrast: float = 0.35
     blur_px: float = 1.0
@@ -51,7 +55,8 @@ class DetectOptions:
     @property
     def factor(self) -> int:
         """Downsampling factor: keep the smallest marker >= ~6 px across."""
-        return int(np.clip(np.floor(self.diameter_px[0] / 6.0), 1, 8))
+        f = int(np.clip(np.floor(self.diameter_px[0] / 6.0), 1, 8))
+        return 1 << (f.bit_length() - 1)  # a power of two: OpenCV's fast area path
 
 
 @dataclass
@@ -68,7 +73,8 @@ class Blob:
     profile_misfit: float = 0.0   # |b - best chord profile| / |b| in the window
 
 
-def candidates(a: np.ndarray, opt: DetectOptions, invalid: np.ndarray | None = None):
+def candidates(a: np.ndarray, opt: DetectOptions, invalid: np.ndarray | None = None,
+               small: np.ndarray | None = None):
     """Candidates (x, y, height/noise) in full-resolution px, strongest first,
     and the pixel noise sigma of the (downsampled) frame."""
     f = opt.factor
@@ -76,15 +82,17 @@ def candidates(a: np.ndarray, opt: DetectOptions, invalid: np.ndarray | None = N
     if invalid is not None:
         # dead regions become plain background, so their borders raise no peaks
         a = np.where(invalid, np.float32(np.median(a[~invalid]) if (~invalid).any() else 0.0), a)
-    small = cv2.resize(a, (cols // f, rows // f), interpolation=cv2.INTER_AREA) if f > 1 else a
+    if small is None:
+        small = cv2.resize(a, (cols // f, rows // f), interpolation=cv2.INTER_AREA) if f > 1 else a
     kd = int(np.ceil(opt.diameter_px[1] * 1.5 / f)) | 1
-    kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (kd, kd))
+    # a square element is separable (fast) and removes any blob it covers
+    kernel = cv2.getStructuringElement(cv2.MORPH_RECT, (kd, kd))
     top = cv2.morphologyEx(small, cv2.MORPH_TOPHAT, kernel, borderType=cv2.BORDER_REPLICATE)
     s = max(opt.diameter_px[0] / f / 4.0, 0.7)
     sm = cv2.GaussianBlur(top, (0, 0), s)
     # the top-hat rectifies noise (the opening follows its minima), so the
     # threshold is taken against the smoothed top-hat's own robust spread
-    sub = sm[::2, ::2]
+    sub = sm[::6, ::6]
     base = float(np.median(sub))
     noise = 1.4826 * float(np.median(np.abs(sub - base))) + 1e-12
     sm = sm - base
@@ -112,48 +120,30 @@ def candidates(a: np.ndarray, opt: DetectOptions, invalid: np.ndarray | None = N
 
 def noise_small(img: np.ndarray) -> float:
     """Robust per-pixel noise sigma of an image (from neighbour differences)."""
-    d = img[:, 1:] - img[:, :-1]
-    med = np.median(d[::2, ::2])
-    return 1.4826 * float(np.median(np.abs(d[::2, ::2] - med))) / np.sqrt(2.0) + 1e-12
+    d = (img[::4, 1::4] - img[::4, :-1:4]).ravel()
+    med = np.median(d)
+    return 1.4826 * float(np.median(np.abs(d - med))) / np.sqrt(2.0) + 1e-12
 
 
-def _background_design(X, Y, quadratic: bool):
-    cols = [np.ones_like(X), X, Y]
-    if quadratic:
-        cols += [X * X, X * Y, Y * Y]
-    return np.column_stack(cols)
-
-
-def _plane_fit(X, Y, Z, iters=3, quadratic=False):
-    """Robust background z = p0 + p1 x + p2 y (+ quadratic terms) by
-    iterated rejection at 3.5 sigma; returns params, residual sigma, inliers, design."""
-    A = _background_design(X, Y, quadratic)
-    keep = np.ones(len(Z), bool)
-    sig = np.inf
-    p = np.zeros(A.shape[1])
-    for _ in range(iters):
-        if keep.sum() < 6:
-            break
-        p, *_ = np.linalg.lstsq(A[keep], Z[keep], rcond=None)
-        r = Z - A @ p
-        sig = 1.4826 * np.median(np.abs(r[keep])) + 1e-12
-        keep = np.abs(r) < 3.5 * sig
-    return p, float(sig), keep, A
+_EMPTY = np.zeros(0)
+_NO_MASK = np.zeros((0, 0), np.bool_)
 
 
 def refine(a: np.ndarray, x0: float, y0: float, r0: float, opt: DetectOptions, others=(), noise: float = 0.0,
            invalid: np.ndarray | None = None) -> Blob | None:
     """Sub-pixel centroid of the sphere shadow near (x0, y0) with radius guess r0.
 
-    ``others``: (x, y, r) of neighbouring candidates, masked out of the background annulus.
+    ``others``: (x, y, r) of neighbouring candidates, kept out of the background
+    annulus; ``noise``: the frame's pixel noise sigma (for the clutter test).
     Returns None when no sphere-like shadow is there.
     """
     rows, cols = a.shape
-    x, y, r = x0, y0, r0
-    flags = []
-    blob = None
+    x, y, r = float(x0), float(y0), float(r0)
     sized = False
-    for it in range(6):
+    bounds = None
+    fitted_at = None
+    st = None
+    for it in range(7):
         rw = 1.15 * r + 3 * opt.blur_px + 1.5      # centroid window
         r_in = rw + 1.0
         r_out = r_in + max(4.0, 0.4 * r)
@@ -163,142 +153,150 @@ def refine(a: np.ndarray, x0: float, y0: float, r0: float, opt: DetectOptions, o
         c0, q0, c1, q1 = max(c0, 0), max(q0, 0), min(c1, cols), min(q1, rows)
         if c1 - c0 < 5 or q1 - q0 < 5:
             return None
-        roi = a[q0:q1, c0:c1].astype(np.float64)
-        yy, xx = np.mgrid[q0:q1, c0:c1]
-        dx, dy = xx - x, yy - y
-        rho2 = dx * dx + dy * dy
-        ring = (rho2 >= r_in**2) & (rho2 <= r_out**2)
-        masked = ring.copy()
-        for ox, oy, orad in others:
-            masked &= (xx - ox) ** 2 + (yy - oy) ** 2 > (1.15 * orad + 3 * opt.blur_px + 2) ** 2
-        # neighbours are left out of the background unless that leaves too little of it
-        full_ring = int(ring.sum())
-        if masked.sum() >= 0.3 * full_ring:
-            ring = masked
-        hidden = 0.0
-        if invalid is not None:
-            inv = invalid[q0:q1, c0:c1]
-            ring &= ~inv
-            win0 = rho2 <= rw**2
-            hidden = float(inv[win0].mean())
-            if hidden > 0.2:
-                return None  # mostly outside the field of view: not measurable
-        if ring.sum() < 12:
-            return None
-        # a quadratic background extrapolates well only from a nearly whole ring
-        quad = ring.sum() > 150 and ring.sum() >= 0.85 * full_ring
-        p, sig_bg, keep, _ = _plane_fit(dx[ring], dy[ring], roi[ring], quadratic=quad)
-        b = roi - (_background_design(dx.ravel(), dy.ravel(), quad) @ p).reshape(roi.shape)
-        win = rho2 <= rw**2
-        w = b[win]
+        if (c0, q0, c1, q1) != bounds:
+            bounds = (c0, q0, c1, q1)
+            roi = a[q0:q1, c0:c1]
+            inv = _NO_MASK
+            if invalid is not None:
+                inv = np.ascontiguousarray(invalid[q0:q1, c0:c1])
+            elif opt.max_attenuation is not None:
+                over = roi > opt.max_attenuation
+                if over.any():  # hot or dead pixels inside this window
+                    inv = cv2.dilate(over.astype(np.uint8), np.ones((5, 5), np.uint8)).astype(bool)
+        cx, cy = x - c0, y - q0
+        if (fitted_at is None or fitted_at[3] != bounds or abs(x - fitted_at[0]) > 0.5
+                or abs(y - fitted_at[1]) > 0.5 or abs(r - fitted_at[2]) > 0.1 * fitted_at[2]):
+            fitted_at = (x, y, r, bounds)
+            ox = np.array([o[0] - c0 for o in others]) if others else _EMPTY
+            oy = np.array([o[1] - q0 for o in others]) if others else _EMPTY
+            orad = np.array([1.15 * o[2] + 3 * opt.blur_px + 2 for o in others]) if others else _EMPTY
+            coef, quad, sig_bg, n_in, s_ring, hidden = kernels.fit_background(
+                roi, inv, cx, cy, r_in, r_out, rw, ox, oy, orad, 150)
+            if hidden > 0.2 or n_in == 0:
+                return None  # mostly outside the field of view, or no background to be had
+            fx, fy = cx, cy
         if not sized:
             # size first, from the half-maximum area: a chord profile exceeds
             # half its peak inside rho < R sqrt(3)/2, whatever the window
-            sm = cv2.blur(b.astype(np.float32), (3, 3))
-            near = rho2 <= (0.5 * r + 2) ** 2
-            peak = float(sm[near].max()) if near.any() else 0.0
+            b = kernels.subtract_background(roi, coef, fx, fy).astype(np.float32)
+            sm = cv2.blur(b, (3, 3))
+            yy, xx = np.mgrid[0:b.shape[0], 0:b.shape[1]]
+            near = (xx - cx) ** 2 + (yy - cy) ** 2 <= (0.5 * r + 2) ** 2
+            if not near.any():
+                return None
+            iy, ix = np.unravel_index(np.argmax(np.where(near, sm, -np.inf)), sm.shape)
+            peak = float(sm[iy, ix])
             if peak <= 0:
                 return None
-            hm = (sm > peak / 2).astype(np.uint8)
-            n, lab = cv2.connectedComponents(hm)
-            iy, ix = np.unravel_index(np.argmax(np.where(near, sm, -np.inf)), sm.shape)
-            area = float((lab == lab[iy, ix]).sum())
-            r_half = float(np.sqrt(area / (0.75 * np.pi)))
+            _, lab = cv2.connectedComponents((sm > peak / 2).astype(np.uint8))
+            comp = lab == lab[iy, ix]
+            r = float(np.clip(np.sqrt(comp.sum() / (0.75 * np.pi)), 0.25 * opt.diameter_px[0], opt.diameter_px[1]))
+            ys_, xs_ = comp.nonzero()
+            x, y = c0 + xs_.mean(), q0 + ys_.mean()
             sized = True
-            r = float(np.clip(r_half, 0.25 * opt.diameter_px[0], opt.diameter_px[1]))
-            x, y = c0 + (lab == lab[iy, ix]).nonzero()[1].mean(), q0 + (lab == lab[iy, ix]).nonzero()[0].mean()
             continue
-        V = w.sum()
+        st = kernels.window_moments(roi, coef, fx, fy, cx, cy, rw)
+        V, mx, my, Mxx, Myy, Mxy = st[:6]
         if V <= 0:
             return None
-        ddx, ddy = dx[win], dy[win]
-        mx, my = (w * ddx).sum() / V, (w * ddy).sum() / V
-        ex, ey = ddx - mx, ddy - my
-        Mxx, Myy, Mxy = (w * ex * ex).sum() / V, (w * ey * ey).sum() / V, (w * ex * ey).sum() / V
         x, y = x + mx, y + my
-        # second moment of a chord profile is 2/5 R^2 per radius^2; blur and
-        # pixel integration add their variances
+        # second moment of a chord profile is 2/5 R^2; blur and pixel
+        # integration add their variances
         m2 = Mxx + Myy - 2 * opt.blur_px**2 - 2 / 12
         if m2 <= 0:
             return None
         r_new = float(np.sqrt(2.5 * m2))
-        tr, det = Mxx + Myy, Mxx * Myy - Mxy**2
-        disc = np.sqrt(max(tr * tr / 4 - det, 0.0))
-        l1, l2 = tr / 2 + disc, tr / 2 - disc
-        aniso = float(np.sqrt(l1 / l2)) if l2 > 0 else np.inf
-        converged = abs(mx) < 1e-3 and abs(my) < 1e-3 and abs(r_new - r) < 0.02 * r
+        converged = abs(mx) < 2e-3 and abs(my) < 2e-3 and abs(r_new - r) < 0.02 * r
         r = r_new
-        if not (0.25 * opt.diameter_px[0] <= r <= 1.0 * opt.diameter_px[1]):
+        if not (0.25 * opt.diameter_px[0] <= r <= opt.diameter_px[1]):
             return None
-        # noise per pixel grows with attenuation: var ~ exp(a) / N0
-        sig_pix = sig_bg * np.exp(np.clip(w, 0, 8) / 2)
-        var_x = (sig_pix**2 * ex**2).sum() / V**2
-        var_y = (sig_pix**2 * ey**2).sum() / V**2
-        # uncertainty of the fitted background slope moves the centroid too
-        nring = max(int(keep.sum()), 1)
-        s_ring = np.sqrt((dx[ring][keep] ** 2).mean() + 1e-9)
-        slope_sig = sig_bg / (np.sqrt(nring) * s_ring)
-        var_bg = (slope_sig * (ex**2).sum() / V) ** 2
-        sigma2 = (var_x + var_y) / 2 + var_bg
-        clutter = noise > 0 and sig_bg > 1.5 * noise
-        if clutter:
-            # structure the background model cannot follow: treat its excess as a
-            # coherent error over half the window
-            excess = np.sqrt(sig_bg**2 - noise**2)
-            sigma2 += (0.5 * excess * np.abs(ex).sum() / V) ** 2
-        sigma = float(np.sqrt(sigma2))
-        if converged or it == 5:
-            # A sphere shadow is point-symmetric about its centroid; the odd part
-            # under reflection measures what else lies in the window (a faint
-            # blob, a ghost, a rod) and bounds the bias it causes.
-            M = cv2.getRotationMatrix2D((float(x - c0), float(y - q0)), 180.0, 1.0)
-            refl = cv2.warpAffine(b.astype(np.float32), M, (b.shape[1], b.shape[0]), flags=cv2.INTER_LINEAR,
-                                  borderMode=cv2.BORDER_REPLICATE)
-            win2 = (xx - x) ** 2 + (yy - y) ** 2 <= rw**2
-            odd = 0.5 * (b - refl)[win2]
-            s_odd = (sig_bg * np.exp(np.clip(b[win2], 0, 8) / 2)) / np.sqrt(2.0)
-            rho = np.sqrt((xx - x) ** 2 + (yy - y) ** 2)[win2]
-            excess = np.maximum(np.abs(odd) - 3 * s_odd, 0.0)
-            asym = float((rho * excess).sum() / V)
-            if asym > 3 * np.sqrt(sigma2) and asym > 0.02:
-                clutter = True
-                sigma2 += asym**2
-                sigma = float(np.sqrt(sigma2))
-        g = 2 * np.sqrt(np.maximum(r * r - (ex * ex + ey * ey), 0.0))
-        gg = float((g * g).sum())
-        misfit = float(np.sqrt(((w - (w @ g) / gg * g) ** 2).sum() / max((w * w).sum(), 1e-30))) if gg > 0 else 1.0
-        peak = float(np.percentile(w, 99.5)) if w.size > 50 else float(w.max())
-        mu_px = 1.5 * V / (np.pi * r * r) / (2 * r)   # V = 4/3 pi R^3 mu
-        flags = ["truncated"] if truncated or hidden > 0 or rw > min(x, y, cols - 1 - x, rows - 1 - y) else []
-        if clutter:
-            flags.append("clutter")
-        blob = Blob(float(x), float(y), r, sigma, float(mu_px), peak, aniso, flags, float(peak / sig_bg), misfit)
         if converged:
             break
-    return blob
+    if st is None:
+        return None
+    V, _, _, Mxx, Myy, Mxy, Sxx_e, Syy_e, sum_e2, abs_ex, n_win = st
+    tr, det = Mxx + Myy, Mxx * Myy - Mxy**2
+    disc = np.sqrt(max(tr * tr / 4 - det, 0.0))
+    l1, l2 = tr / 2 + disc, tr / 2 - disc
+    aniso = float(np.sqrt(l1 / l2)) if l2 > 0 else np.inf
+    # centroid noise: pixel noise grows with attenuation, var ~ exp(a) / N0
+    sigma2 = sig_bg**2 * (Sxx_e + Syy_e) / 2 / V**2
+    # the fitted background's slope uncertainty moves the centroid too
+    slope_sig = sig_bg / (np.sqrt(max(n_in, 1)) * s_ring)
+    sigma2 += (slope_sig * sum_e2 / V) ** 2
+    clutter = noise > 0 and sig_bg > 1.5 * noise
+    if clutter:
+        # structure the background model cannot follow: its excess taken as a
+        # coherent error over half the window
+        sigma2 += (0.5 * np.sqrt(sig_bg**2 - noise**2) * abs_ex / V) ** 2
+    # A sphere shadow is point-symmetric about its centroid; the odd part under
+    # reflection measures what else lies in the window (a faint blob, a ghost,
+    # a rod) and bounds the bias it causes.
+    cx, cy = x - c0, y - q0
+    b = kernels.subtract_background(roi, coef, fx, fy).astype(np.float32)
+    yy, xx = np.mgrid[0:b.shape[0], 0:b.shape[1]]
+    ddx, ddy = xx - cx, yy - cy
+    win = ddx * ddx + ddy * ddy <= rw * rw
+    M = cv2.getRotationMatrix2D((float(cx), float(cy)), 180.0, 1.0)
+    refl = cv2.warpAffine(b, M, (b.shape[1], b.shape[0]), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+    bw = b[win].astype(np.float64)
+    odd = 0.5 * (bw - refl[win])
+    s_odd = sig_bg * np.exp(np.clip(bw, 0, 8) / 2) / np.sqrt(2.0)
+    rho = np.sqrt(ddx[win] ** 2 + ddy[win] ** 2)
+    asym = float((rho * np.maximum(np.abs(odd) - 3 * s_odd, 0.0)).sum() / V)
+    if asym > 3 * np.sqrt(sigma2) and asym > 0.02:
+        clutter = True
+        sigma2 += asym**2
+    # how far the shadow is from an ideal chord profile 2 mu sqrt(r^2 - rho^2)
+    g = 2 * np.sqrt(np.maximum(r * r - rho * rho, 0.0))
+    gg = float(g @ g)
+    misfit = float(np.sqrt(((bw - (bw @ g) / gg * g) ** 2).sum() / max(float(bw @ bw), 1e-30))) if gg > 0 else 1.0
+    peak = float(cv2.blur(b, (3, 3))[win].max())  # a smoothed maximum: robust to one noisy pixel
+    mu_px = 1.5 * V / (np.pi * r * r) / (2 * r)   # V = 4/3 pi R^3 mu
+    flags = ["truncated"] if truncated or hidden > 0 or rw > min(x, y, cols - 1 - x, rows - 1 - y) else []
+    if clutter:
+        flags.append("clutter")
+    return Blob(float(x), float(y), r, float(np.sqrt(sigma2)), float(mu_px), peak, aniso, flags,
+                float(peak / sig_bg), misfit)
+
+
+class NonFiniteFrame(ValueError):
+    """The frame holds NaN or inf pixels."""
 
 
 def detect_frame(a: np.ndarray, opt: DetectOptions) -> list[Blob]:
-    """All sphere-like shadows in attenuation frame ``a`` (not yet filtered by contrast)."""
-    invalid = a > opt.max_attenuation
-    if not invalid.any():
-        invalid = None
-    else:
-        invalid = cv2.dilate(invalid.astype(np.uint8), np.ones((5, 5), np.uint8)).astype(bool)
-    cands, noise = candidates(a, opt, invalid)
+    """All sphere-like shadows in attenuation frame ``a`` (not yet filtered by contrast).
+
+    Raises :class:`NonFiniteFrame` if ``a`` holds NaN or inf pixels.
+    """
+    rows, cols = a.shape
+    f = opt.factor
+    small = cv2.resize(a, (cols // f, rows // f), interpolation=cv2.INTER_AREA) if f > 1 else a
+    smax = float(small.max())
+    if not np.isfinite(smax) or not np.isfinite(small.min()):
+        raise NonFiniteFrame()
+    invalid = None
+    # dead or outside-the-field regions are large; single hot pixels are handled per window
+    if opt.max_attenuation is not None and smax > opt.max_attenuation:
+        invalid = cv2.dilate((a > opt.max_attenuation).astype(np.uint8), np.ones((5, 5), np.uint8)).astype(bool)
+    cands, noise = candidates(a, opt, invalid, small if invalid is None else None)
     noise *= opt.factor  # the downsampled frame averages factor**2 pixels
     r_guess = opt.diameter_px[0] / 2 if opt.diameter_px[1] / opt.diameter_px[0] < 1.6 else np.mean(opt.diameter_px) / 2
     blobs: list[Blob] = []
     rough = [(cx, cy, opt.diameter_px[0] / 2) for cx, cy, _ in cands]
+    strength = [h for _, _, h in cands]
     for i, (cx, cy, h) in enumerate(cands):
         # a candidate inside an accepted blob is the same sphere
         if any((cx - b.x) ** 2 + (cy - b.y) ** 2 < (0.8 * b.radius) ** 2 for b in blobs):
             continue
-        others = [o for j, o in enumerate(rough) if j != i and (o[0] - cx) ** 2 + (o[1] - cy) ** 2 < (4 * opt.diameter_px[1]) ** 2]
+        # neighbours of comparable strength are likely markers: keep them out of
+        # this one's background; faint ones are part of the background
+        others = [o for j, o in enumerate(rough) if j != i and strength[j] >= 0.3 * h
+                  and (o[0] - cx) ** 2 + (o[1] - cy) ** 2 < (4 * opt.diameter_px[1]) ** 2]
         others = [o for o in others if not any((o[0] - b.x) ** 2 + (o[1] - b.y) ** 2 < (0.8 * b.radius) ** 2 for b in blobs)] + \
                  [(b.x, b.y, b.radius) for b in blobs]
         b = refine(a, cx, cy, r_guess, opt, others, noise, invalid)
-        if b is None or b.snr < opt.threshold:
+        if b is None or b.snr < opt.min_snr:
             continue
         if any((b.x - o.x) ** 2 + (b.y - o.y) ** 2 < (0.8 * o.radius) ** 2 for o in blobs):
             continue

@@ -2,20 +2,28 @@
 
 from __future__ import annotations
 
-from concurrent.futures import ThreadPoolExecutor
+import multiprocessing as mp
+from concurrent.futures import ProcessPoolExecutor
 from typing import Callable
 
 import numpy as np
 
 from .. import __version__
 from ..scan import Scan
-from .frame import DetectOptions, detect_frame
+from . import kernels
+from .frame import DetectOptions, NonFiniteFrame, detect_frame
 from .track import track
 
 MARKERS_FORMAT = "conecal-markers/1"
 
+_WORKER = None
 
-def options_for_scan(scan: Scan, *, threshold: float = 6.0, blur_px: float = 1.0,
+
+def _run_worker(k):
+    return _WORKER(k)
+
+
+def options_for_scan(scan: Scan, *, threshold: float = 10.0, blur_px: float = 1.0,
                      diameter_px: tuple[float, float] | None = None) -> DetectOptions:
     """Expected shadow sizes from ``markers.diameter(s)`` and the nominal
     magnification, widened for depth changes (x0.6 .. x1.6)."""
@@ -66,12 +74,31 @@ def detect_scan(scan: Scan, opt: DetectOptions, *, workers: int = 2,
     frames_idx = [int(f) for f in scan.log.frame]
 
     def one(k):
-        return detect_frame(scan.stack.read(k), opt)
+        a = scan.stack.read(k, check=False)
+        try:
+            return detect_frame(a, opt)
+        except NonFiniteFrame:
+            scan.stack.check_finite(k, a)  # raises InputError naming the pixel
+            raise
 
     results = []
-    with ThreadPoolExecutor(max_workers=max(1, workers)) as ex:
-        for n, res in enumerate(ex.map(one, frames_idx), 1):
-            results.append(res)
+    if workers > 1 and "fork" in mp.get_all_start_methods():
+        # Processes, not threads: the per-marker work is many small numpy calls
+        # that hold the GIL. Forked workers inherit the open scan.
+        global _WORKER
+        _WORKER = one
+        kernels.warm_up()
+        ctx = mp.get_context("fork")
+        with ProcessPoolExecutor(max_workers=workers, mp_context=ctx) as ex:
+            chunk = max(1, min(16, len(frames_idx) // (4 * workers)))
+            for n, res in enumerate(ex.map(_run_worker, frames_idx, chunksize=chunk), 1):
+                results.append(res)
+                if progress:
+                    progress(n, len(frames_idx))
+        _WORKER = None
+    else:
+        for n, k in enumerate(frames_idx, 1):
+            results.append(one(k))
             if progress:
                 progress(n, len(frames_idx))
     # Ghosts (detector lag) and faint blobs are sphere-shaped but far weaker

@@ -63,9 +63,11 @@ class ProjectionStack:
             self._n = len(self._files)
         elif self.path.is_file():
             self._files = None
+            self._views = None
             try:
                 with tifffile.TiffFile(self.path) as tf:
                     self._n = len(tf.pages)
+                    self._views = self._contiguous_layout(tf)
             except Exception as exc:
                 raise InputError(f"{self.path}: unreadable TIFF ({type(exc).__name__}: {exc})") from None
             if self._n == 0:
@@ -86,6 +88,28 @@ class ProjectionStack:
     def __len__(self) -> int:
         return self._n
 
+    def _contiguous_layout(self, tf):
+        """(offset, dtype) per page when every page is stored uncompressed and
+        contiguous with the expected shape: such frames are read through a
+        memory map (no copy; the page cache bounds memory). None otherwise."""
+        size = Path(self.path).stat().st_size
+        layout = []
+        for page in tf.pages:
+            offsets, counts = page.dataoffsets, page.databytecounts
+            if (page.compression != 1 or tuple(page.shape) != self.shape or page.dtype is None
+                    or getattr(page, "samplesperpixel", 1) != 1 or not offsets
+                    or any(o + c != o2 for o, c, o2 in zip(offsets, counts, offsets[1:]))):
+                return None
+            offset, nbytes = offsets[0], sum(counts)
+            dtype = np.dtype(page.dtype).newbyteorder(tf.byteorder)
+            if nbytes != dtype.itemsize * self.shape[0] * self.shape[1] or offset + nbytes > size:
+                return None
+            layout.append((int(offset), dtype))
+        if not layout:
+            return None
+        self._mm = np.memmap(self.path, dtype=np.uint8, mode="r")
+        return layout
+
     def _handle(self) -> tifffile.TiffFile:
         tf = getattr(self._local, "tf", None)
         if tf is None:
@@ -98,6 +122,10 @@ class ProjectionStack:
         if not 0 <= k < self._n:
             raise IndexError(f"frame {k} out of range 0..{self._n - 1}")
         where = self._files[k] if self._files is not None else self.path
+        if self._files is None and self._views is not None:
+            offset, dtype = self._views[k]
+            n = dtype.itemsize * self.shape[0] * self.shape[1]
+            return self._mm[offset:offset + n].view(dtype).reshape(self.shape)
         try:
             if self._files is not None:
                 img = tifffile.imread(self._files[k])
@@ -109,15 +137,26 @@ class ProjectionStack:
             raise InputError(f"{where}: frame {k}: shape {img.shape}, scan.yaml says {self.shape} (rows, cols)")
         return img
 
-    def read(self, k: int) -> np.ndarray:
-        """Frame ``k`` as float32 attenuation; raises on NaN/inf pixels."""
-        img = self.read_raw(k)
-        a = np.asarray(img, dtype=np.float32)
+    def check_finite(self, k: int, a: np.ndarray) -> None:
+        """Raise InputError naming frame ``k`` and the first non-finite pixel of ``a``."""
         if not np.isfinite(a).all():
             bad = np.flatnonzero(~np.isfinite(a.reshape(-1)))[0]
             r, c = divmod(int(bad), self.shape[1])
             where = self._files[k] if self._files is not None else self.path
             raise InputError(f"{where}: frame {k}: pixel (row {r}, col {c}) is {a[r, c]}")
+
+    def read(self, k: int, check: bool = True) -> np.ndarray:
+        """Frame ``k`` as float32 attenuation (read-only when memory-mapped).
+
+        Raises on NaN/inf pixels unless ``check`` is False, for callers that
+        check a reduced copy instead (NaN and inf survive averaging) and call
+        :meth:`check_finite` when that finds one.
+        """
+        img = self.read_raw(k)
+        # converted values are computed in place, so they need their own copy
+        a = np.asarray(img, dtype=np.float32) if self.values == "attenuation" else np.array(img, dtype=np.float32)
+        if check or self.values != "attenuation":
+            self.check_finite(k, a)
         if self.values == "attenuation":
             return a
         if self.values == "raw":
