@@ -24,49 +24,19 @@ import numpy as np
 import tifffile
 
 from conecal.detect import detect_scan, options_for_scan
+from conecal.detect.evaluate import Score, score_markers
 from conecal.scan import load_scan
 from conecal.simulate import linear_raster, robot_helix, rotation_scan, write_scan
 from conecal.simulate.clutter import add_clutter
 
 
-def score(scan_dir: Path, fov_radius: float | None = None) -> dict:
+def score(scan_dir: Path, fov_radius: float | None = None):
+    """Detect on a simulated scan and score it against its truth.json."""
     s = load_scan(scan_dir)
     doc = detect_scan(s, options_for_scan(s), workers=os.cpu_count() or 2)
     truth = json.loads((scan_dir / "truth.json").read_text())
-    rows, cols = s.stack.shape
-    errs, sig, visible, found, false, flagged = [], [], 0, 0, 0, 0
-    for fr, tf in zip(doc["frames"], truth["frames"]):
-        P = np.array([m["centroid"] for m in tf["markers"]])
-        D = np.array([m["diameter_px"] for m in tf["markers"]])
-        inside = np.array([m["inside"] for m in tf["markers"]])
-        # fully visible: inside the detector (and field of view), no other shadow within reach
-        dd = np.hypot(P[:, None, 0] - P[None, :, 0], P[:, None, 1] - P[None, :, 1]) + np.eye(len(P)) * 1e9
-        alone = np.all(dd > (D[:, None] + D[None, :]) / 2 * 1.15 + 6, axis=1)
-        vis = inside & alone
-        if fov_radius is not None:
-            vis &= np.hypot(P[:, 0] - (cols - 1) / 2, P[:, 1] - (rows - 1) / 2) + D / 2 + 8 < fov_radius
-        hit = set()
-        for m in fr["markers"]:
-            d = np.hypot(P[:, 0] - m["x"], P[:, 1] - m["y"])
-            j = int(d.argmin())
-            if d[j] > D[j] / 4:
-                false += 1
-                continue
-            hit.add(j)
-            if m["flags"]:
-                flagged += 1
-            elif vis[j]:
-                errs.append(d[j])
-                sig.append(m["sigma"])
-        visible += int(vis.sum())
-        found += sum(1 for j in np.flatnonzero(vis) if j in hit)
-    errs, sig = np.array(errs), np.array(sig)
-    return {"n": len(errs), "rms_px": float(np.sqrt(np.mean(errs**2))), "max_px": float(errs.max()),
-            "pull": float(np.sqrt(np.mean(errs**2) / np.mean(sig**2))), "visible": visible, "found": found,
-            "false": false, "flagged": flagged,
-            "diam_px": (float(np.min([m["diameter_px"] for f in truth["frames"] for m in f["markers"]])),
-                        float(np.max([m["diameter_px"] for f in truth["frames"] for m in f["markers"]])))}
-
+    diam = [m["diameter_px"] for f in truth["frames"] for m in f["markers"]]
+    return score_markers(doc, truth, fov_radius=fov_radius, shape=s.stack.shape), (min(diam), max(diam))
 
 def scenes(quick: bool):
     seeds = [0, 1] if quick else [0, 1, 2]
@@ -81,13 +51,22 @@ def scenes(quick: bool):
         yield "clutter: rod, plate, bone, faint, lag, FOV, JPEG", sc.fov_radius, sc
 
 
-def accuracy(work: Path, quick: bool) -> list[tuple[str, dict]]:
-    rows = []
+def accuracy(work: Path, quick: bool) -> dict:
+    """Per scene, all seeds pooled: (Score, diameter range px, seeds)."""
+    pooled: dict = {}
     for k, (name, fov, sc) in enumerate(scenes(quick)):
         d = write_scan(sc, work / f"acc{k}", seed=k, overwrite=True)
-        rows.append((name, score(d, fov)))
-    return rows
-
+        sc_, diam = score(d, fov)
+        if name not in pooled:
+            pooled[name] = [sc_, list(diam), 1]
+        else:
+            p = pooled[name]
+            p[0] = Score(np.concatenate([p[0].errors, sc_.errors]), np.concatenate([p[0].sigmas, sc_.sigmas]),
+                         p[0].found + sc_.found, p[0].visible + sc_.visible, p[0].false + sc_.false,
+                         p[0].flagged + sc_.flagged)
+            p[1] = [min(p[1][0], diam[0]), max(p[1][1], diam[1])]
+            p[2] += 1
+    return pooled
 
 def speed(work: Path, quick: bool) -> dict:
     n = (4, 4, 4) if quick else (6, 6, 6)       # 64 or 216 frames
@@ -126,11 +105,11 @@ def main():
     work = Path(args.workdir or tempfile.mkdtemp(prefix="conecal-bench-"))
     work.mkdir(parents=True, exist_ok=True)
     if not args.skip_accuracy:
-        print("| scene | diameters px | markers | RMS px | max px | pull | found/visible | false | flagged |")
-        print("|---|---|---|---|---|---|---|---|---|")
-        for name, r in accuracy(work, args.quick):
-            print(f"| {name} | {r['diam_px'][0]:.0f}-{r['diam_px'][1]:.0f} | {r['n']} | {r['rms_px']:.4f} | "
-                  f"{r['max_px']:.3f} | {r['pull']:.2f} | {r['found']}/{r['visible']} | {r['false']} | {r['flagged']} |")
+        print("| scene | seeds | diameters px | markers | RMS px | max px | pull | found/visible | false | flagged |")
+        print("|---|---|---|---|---|---|---|---|---|---|")
+        for name, (r, diam, seeds) in accuracy(work, args.quick).items():
+            print(f"| {name} | {seeds} | {diam[0]:.0f}-{diam[1]:.0f} | {r.errors.size} | {r.rms:.4f} | "
+                  f"{r.errors.max():.3f} | {r.pull:.2f} | {r.found}/{r.visible} | {r.false} | {r.flagged} |")
     if not args.skip_speed:
         r = speed(work, args.quick)
         print(f"\nspeed ({r['frames']} frames {r['shape']}, {r['cores']} cores): bare tifffile read {r['bare_read_s']:.2f} s, "

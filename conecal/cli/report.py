@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import click
 
 from ..jsonio import read_json
@@ -11,6 +13,27 @@ def _fmt(v, unit):
     if v is None:
         return "-"
     return f"{v:.6g}" if unit != "mm" else f"{v:.4f}"
+
+
+def _truth_comparison(console, doc) -> None:
+    """For a simulated scan (truth.json beside scan.yaml): the errors of the result."""
+    import numpy as np
+
+    from ..errors import InputError
+    from ..geometry import ConeGeometry
+
+    truth_path = Path(str(doc.get("scan", ""))) / "truth.json"
+    if not truth_path.is_file():
+        return
+    try:
+        truth = read_json(truth_path, "conecal-truth")
+    except InputError:
+        return
+    g, t = ConeGeometry.from_dict(doc), ConeGeometry.from_dict(truth["geometry"])
+    ang = np.degrees(np.arccos(np.clip(np.dot(g.normal, t.normal), -1, 1)))
+    console.print(f"  vs truth ({truth_path}): source {np.linalg.norm(g.source - t.source):.4f} mm, "
+                  f"detector centre {np.linalg.norm(g.detector_centre - t.detector_centre):.4f} mm, "
+                  f"detector normal {ang:.4f} deg, u {np.degrees(np.arccos(np.clip(g.u @ t.u, -1, 1))):.4f} deg")
 
 
 @click.command("report")
@@ -36,7 +59,8 @@ def command(results):
         table = Table(title=f"{path} — {doc.get('stage', '?')} on {doc.get('scan', '?')}", title_justify="left")
         for col in ("parameter", "unit", "initial", "final", "± 1σ", ""):
             table.add_column(col, justify="right" if col not in ("parameter", "unit", "") else "left")
-        for name, p in fit.get("parameters", {}).items():
+        params = sorted(fit.get("parameters", {}).items(), key=lambda kv: kv[1].get("index", 0))
+        for name, p in params:
             if not p.get("free"):
                 continue
             sig = p.get("sigma")
@@ -51,6 +75,7 @@ def command(results):
         src = doc["source"]
         det = doc["detector"]
         console.print(f"  source {[round(x, 4) for x in src]} mm; detector origin {[round(x, 4) for x in det['origin']]} mm")
+        _truth_comparison(console, doc)
         if fit.get("undetermined"):
             console.print(f"  [bold red]warning:[/] the data do not determine {', '.join(fit['undetermined'])}")
             for combo in fit.get("null_combinations", []):

@@ -94,7 +94,7 @@ def candidates(a: np.ndarray, opt: DetectOptions, invalid: np.ndarray | None = N
     # threshold is taken against the smoothed top-hat's own robust spread
     sub = sm[::6, ::6]
     base = float(np.median(sub))
-    noise = 1.4826 * float(np.median(np.abs(sub - base))) + 1e-12
+    noise = 1.4826 * float(np.median(np.abs(sub - base))) + 1e-7
     sm = sm - base
     k = max(int(opt.diameter_px[0] / f * 0.6), 1) * 2 + 1
     mx = cv2.dilate(sm, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (k, k)))
@@ -122,7 +122,7 @@ def noise_small(img: np.ndarray) -> float:
     """Robust per-pixel noise sigma of an image (from neighbour differences)."""
     d = (img[::4, 1::4] - img[::4, :-1:4]).ravel()
     med = np.median(d)
-    return 1.4826 * float(np.median(np.abs(d - med))) / np.sqrt(2.0) + 1e-12
+    return 1.4826 * float(np.median(np.abs(d - med))) / np.sqrt(2.0) + 1e-7
 
 
 _EMPTY = np.zeros(0)
@@ -224,11 +224,21 @@ def refine(a: np.ndarray, x0: float, y0: float, r0: float, opt: DetectOptions, o
     # the fitted background's slope uncertainty moves the centroid too
     slope_sig = sig_bg / (np.sqrt(max(n_in, 1)) * s_ring)
     sigma2 += (slope_sig * sum_e2 / V) ** 2
-    clutter = noise > 0 and sig_bg > 1.5 * noise
+    clutter = noise > 0 and sig_bg > 1.5 * noise + 1e-6
     if clutter:
         # structure the background model cannot follow: its excess taken as a
         # coherent error over half the window
         sigma2 += (0.5 * np.sqrt(sig_bg**2 - noise**2) * abs_ex / V) ** 2
+    # The centroid of the shadow's core (rho < 0.75 r) must agree with the whole
+    # window's: a faint blob, ghost or rod near the edge pulls them apart.
+    core = kernels.window_moments(roi, coef, fx, fy, x - c0, y - q0, 0.75 * r)
+    if core[0] > 0:
+        dcx, dcy = core[1], core[2]
+        var_core = sig_bg**2 * (core[6] + core[7]) / 2 / core[0] ** 2
+        gap2 = (dcx * dcx + dcy * dcy) / 2
+        if gap2 > 9 * (var_core + sigma2) and np.sqrt(gap2) > 0.03:  # cone-beam asymmetry is ~0.02 px
+            clutter = True
+            sigma2 += gap2
     # A sphere shadow is point-symmetric about its centroid; the odd part under
     # reflection measures what else lies in the window (a faint blob, a ghost,
     # a rod) and bounds the bias it causes.
@@ -311,8 +321,8 @@ def detect_frame(a: np.ndarray, opt: DetectOptions) -> list[Blob]:
                         b.flags.append("overlap")
     kept = []
     for b in blobs:
-        if b.anisotropy > opt.max_anisotropy and not set(b.flags) & {"overlap", "truncated", "clutter"}:
-            continue  # rods, edges, irregular blobs on a clean background
+        if b.anisotropy > opt.max_anisotropy and not set(b.flags) & {"truncated", "clutter"}:
+            continue  # rods, edges, two shadows merged into one blob
         if b.anisotropy > 2.0:
             continue  # not a sphere shadow even allowing for what lies across it
         if "clutter" in b.flags and b.profile_misfit > 0.2 + 1.5 / b.radius:

@@ -24,6 +24,16 @@ def _design(dx, dy, quad, out):
 
 
 @njit(cache=True)
+def _outside_all(i, j, ox, oy, orad):
+    for k in range(ox.shape[0]):
+        ex = j - ox[k]
+        ey = i - oy[k]
+        if ex * ex + ey * ey <= orad[k] * orad[k]:
+            return False
+    return True
+
+
+@njit(cache=True)
 def fit_background(roi, inv, cx, cy, r_in, r_out, rw, ox, oy, orad, quad_min):
     """Robust polynomial background from the annulus ``r_in..r_out`` about (cx, cy).
 
@@ -54,14 +64,7 @@ def fit_background(roi, inv, cx, cy, r_in, r_out, rw, ox, oy, orad, quad_min):
             if r2 < r_in * r_in or r2 > r_out * r_out or bad:
                 continue
             n_full += 1
-            free = True
-            for k in range(ox.shape[0]):
-                ex = j - ox[k]
-                ey = i - oy[k]
-                if ex * ex + ey * ey <= orad[k] * orad[k]:
-                    free = False
-                    break
-            if free:
+            if _outside_all(i, j, ox, oy, orad):
                 n_masked += 1
     hidden = n_hidden / max(n_win, 1)
     use_mask = n_masked >= 0.3 * n_full
@@ -80,16 +83,8 @@ def fit_background(roi, inv, cx, cy, r_in, r_out, rw, ox, oy, orad, quad_min):
             r2 = dx * dx + dy * dy
             if r2 < r_in * r_in or r2 > r_out * r_out or (has_inv and inv[i, j]):
                 continue
-            if use_mask:
-                free = True
-                for k in range(ox.shape[0]):
-                    ex = j - ox[k]
-                    ey = i - oy[k]
-                    if ex * ex + ey * ey <= orad[k] * orad[k]:
-                        free = False
-                        break
-                if not free:
-                    continue
+            if use_mask and not _outside_all(i, j, ox, oy, orad):
+                continue
             X[m] = dx
             Y[m] = dy
             Z[m] = roi[i, j]
@@ -131,7 +126,7 @@ def fit_background(roi, inv, cx, cy, r_in, r_out, rw, ox, oy, orad, quad_min):
             if keep[t]:
                 absr[nk] = abs(v)
                 nk += 1
-        sig = 1.4826 * np.median(absr) + 1e-12
+        sig = 1.4826 * np.median(absr) + 1e-7  # floor: noiseless (simulated) data
         changed = False
         for t in range(n):
             k = abs(res[t]) < 3.5 * sig
@@ -192,20 +187,26 @@ def window_moments(roi, coef, fx, fy, cx, cy, rw):
     D = 0.0
     Dx = 0.0
     Dxx = 0.0
-    i0 = max(int(np.floor(cy - rw)), 0)
-    i1 = min(int(np.ceil(cy + rw)) + 1, h)
-    j0 = max(int(np.floor(cx - rw)), 0)
-    j1 = min(int(np.ceil(cx + rw)) + 1, w)
+    i0 = max(int(np.floor(cy - rw - 1)), 0)
+    i1 = min(int(np.ceil(cy + rw + 1)) + 1, h)
+    j0 = max(int(np.floor(cx - rw - 1)), 0)
+    j1 = min(int(np.ceil(cx + rw + 1)) + 1, w)
+    lim = (rw + 0.5) * (rw + 0.5)
     for i in range(i0, i1):
         for j in range(j0, j1):
             dx = j - cx
             dy = i - cy
-            if dx * dx + dy * dy > rw * rw:
+            r2 = dx * dx + dy * dy
+            if r2 >= lim:
                 continue
+            # anti-aliased edge: a pixel counts by how much of it the disc covers,
+            # so a window cut through a bright region stays symmetric
+            wgt = min(rw + 0.5 - np.sqrt(r2), 1.0)
             _design(j - fx, i - fy, True, row)
             b = roi[i, j]
             for a in range(6):
                 b -= coef[a] * row[a]
+            b *= wgt
             n += 1
             V += b
             Sx += b * dx
@@ -213,15 +214,15 @@ def window_moments(roi, coef, fx, fy, cx, cy, rw):
             Sxx += b * dx * dx
             Syy += b * dy * dy
             Sxy += b * dx * dy
-            e = np.exp(min(max(b, 0.0), 8.0))
+            e = np.exp(min(max(b, 0.0), 8.0)) * wgt * wgt
             E += e
             Ex += e * dx
             Ey += e * dy
             Exx += e * dx * dx
             Eyy += e * dy * dy
-            D += 1.0
-            Dx += dx
-            Dxx += dx * dx + dy * dy
+            D += wgt
+            Dx += wgt * dx
+            Dxx += wgt * (dx * dx + dy * dy)
     if V <= 0:
         return V, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, n
     mx = Sx / V
@@ -237,9 +238,10 @@ def window_moments(roi, coef, fx, fy, cx, cy, rw):
         for j in range(j0, j1):
             dx = j - cx
             dy = i - cy
-            if dx * dx + dy * dy > rw * rw:
+            r2 = dx * dx + dy * dy
+            if r2 >= lim:
                 continue
-            abs_ex += abs(dx - mx)
+            abs_ex += min(rw + 0.5 - np.sqrt(r2), 1.0) * abs(dx - mx)
     return V, mx, my, Mxx, Myy, Mxy, Sxx_e, Syy_e, sum_e2 / 2.0, abs_ex, n
 
 

@@ -65,7 +65,7 @@ class FitResult:
     def parameters_dict(self) -> dict:
         out = {}
         for i, n in enumerate(self.names):
-            out[n] = {"initial": float(self.initial[i]), "value": float(self.x[i]), "free": bool(self.free[i]),
+            out[n] = {"index": i, "initial": float(self.initial[i]), "value": float(self.x[i]), "free": bool(self.free[i]),
                       "sigma": None if not np.isfinite(self.sigma[i]) else float(self.sigma[i]),
                       "unit": self.units[i] if self.units else "", "determined": n not in self.undetermined}
         return out
