@@ -10,6 +10,21 @@ from ..simulate import BUILDERS, write_scan
 from .options import info, progress_bar
 
 
+def _system_of(scan_dir) -> dict:
+    """Builder arguments that reproduce another simulated scan's system."""
+    from pathlib import Path
+
+    from ..geometry import ConeGeometry
+    from ..jsonio import read_json
+    from ..scan import load_config
+
+    cfg = load_config(Path(scan_dir) / "scan.yaml")
+    truth = read_json(Path(scan_dir) / "truth.json", "conecal-truth")
+    g = ConeGeometry.from_dict(truth["geometry"])
+    return {"rows": cfg.detector.rows, "cols": cfg.detector.cols, "pitch": cfg.detector.pixel_pitch[0],
+            "sod": cfg.nominal.sod, "sdd": cfg.nominal.sdd, "true_geometry": g}
+
+
 @click.command("simulate")
 @click.argument("kind", type=click.Choice(sorted(BUILDERS)))
 @click.argument("out", type=click.Path(file_okay=False))
@@ -21,8 +36,11 @@ from .options import info, progress_bar
 @click.option("--effect", "effects", multiple=True, metavar="NAME[:K=V,...]",
               help=f"Switch on a physical effect (repeatable). Known: {', '.join(sorted(REGISTRY))}.")
 @click.option("--dense-holder", is_flag=True, help="Add a dense object holder (robot, circular).")
+@click.option("--same-system-as", "same_as", type=click.Path(file_okay=False), default=None,
+              help="A simulated scan directory whose true source, detector and nominal set-up to reuse "
+                   "(linear and rotation only): two scans of one system.")
 @click.option("--overwrite", is_flag=True, help="Replace OUT if it exists.")
-def command(kind, out, seed, frames, photons, blur_px, values, effects, dense_holder, overwrite):
+def command(kind, out, seed, frames, photons, blur_px, values, effects, dense_holder, same_as, overwrite):
     """Simulate a scan of KIND (linear | rotation | robot | circular) into OUT.
 
     Writes scan.yaml, log.csv, projections.tif (exact line integrals,
@@ -44,6 +62,10 @@ def command(kind, out, seed, frames, photons, blur_px, values, effects, dense_ho
         if kind not in ("robot", "circular"):
             raise InputError("--dense-holder: only for robot and circular scans")
         kw["dense_holder"] = True
+    if same_as is not None:
+        if kind not in ("linear", "rotation"):
+            raise InputError("--same-system-as: only for linear and rotation scans")
+        kw.update(_system_of(same_as))
     sc = BUILDERS[kind](seed, **kw)
     if photons is not None:
         sc.photons = photons

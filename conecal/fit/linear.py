@@ -19,14 +19,12 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..errors import FitError, InputError
-from ..geometry import ConeGeometry, matrix_to_rotvec, rotvec_to_matrix
-from ..geometry.cone import so3_left_jacobian
-from ..geometry.rotations import skew
+from ..geometry import ConeGeometry
 from ..geometry.sphere import shadow_bias
 from .core import FitResult, Parameter, solve
+from .detector_params import DEG, DetectorParams
+from .detector_params import NAMES as DETECTOR_NAMES
 from .markers import Observations
-
-DEG = np.pi / 180
 
 
 @dataclass(frozen=True, eq=False)
@@ -43,23 +41,17 @@ class LinearModel:
     def n_axes(self):
         return len(self.axis_names)
 
+    def __post_init__(self):
+        object.__setattr__(self, "detector", DetectorParams(self.base))
+
     def parameter_names(self):
-        names = list(ConeGeometry.PARAMETERS[:3]) + ["detector_centre_x", "detector_centre_y", "detector_centre_z",
-                                                    "detector_rx", "detector_ry", "detector_rz"]
+        names = list(DETECTOR_NAMES)
         names += [f"scale_{a}" for a in self.axis_names]
         names += [f"tilt_{self.axis_names[j]}_to_{self.axis_names[k]}" for j in range(self.n_axes) for k in range(j)]
         return names
 
-    def _centre_offsets(self):
-        rows, cols = self.base.shape
-        return (cols - 1) / 2 * self.base.pixel_pitch[0], (rows - 1) / 2 * self.base.pixel_pitch[1]
-
     def geometry(self, x) -> ConeGeometry:
-        R = rotvec_to_matrix(x[6:9] * DEG)
-        u, v = R @ self.base.u, R @ self.base.v
-        a, b = self._centre_offsets()
-        centre = self.base.detector_centre + x[3:6]
-        return self.base.replace(source=self.base.source + x[0:3], detector_origin=centre - a * u - b * v, u=u, v=v)
+        return self.detector.geometry(x[:9])
 
     def directions_at(self, x):
         n = self.n_axes
@@ -83,10 +75,7 @@ class LinearModel:
     def from_geometry(self, g: ConeGeometry) -> np.ndarray:
         """Parameter vector (geometry part; axes nominal) that reproduces ``g``."""
         x = self.nominal_vector()
-        x[0:3] = g.source - self.base.source
-        x[3:6] = g.detector_centre - self.base.detector_centre
-        R = np.column_stack([g.u, g.v, g.normal]) @ np.column_stack([self.base.u, self.base.v, self.base.normal]).T
-        x[6:9] = matrix_to_rotvec(R) / DEG
+        x[:9] = self.detector.vector(g)
         return x
 
     def nominal_vector(self):
@@ -108,16 +97,9 @@ class LinearModel:
         g = self.geometry(x)
         X = self.points(x)
         n = self.n_axes
-        w = x[6:9] * DEG
-        Jg = g.geometry_jacobian(X, rotvec=w)            # source, origin, rotation about origin
         _, Jx = g.project_jacobian(X)                    # (m, 2, 3)
-        m = X.shape[0]
-        J = np.zeros((m, 2, len(self.parameter_names())))
-        J[:, :, 0:3] = Jg[:, :, 0:3]
-        J[:, :, 3:6] = Jg[:, :, 3:6]                      # origin moves with the centre
-        a, b = self._centre_offsets()
-        dO_dw = (a * skew(g.u) + b * skew(g.v)) @ so3_left_jacobian(w)
-        J[:, :, 6:9] = (Jg[:, :, 6:9] + Jg[:, :, 3:6] @ dO_dw) * DEG
+        J = np.zeros((X.shape[0], 2, len(self.parameter_names())))
+        J[:, :, 0:9] = self.detector.jacobian(g, X, x[:9])
         D, scales, norms = self.directions_at(x)
         for j in range(n):
             J[:, :, 9 + j] = Jx @ D[j] * self.readings[:, j, None]

@@ -70,7 +70,7 @@ def _ball_rule(n_r: int = 4, n_polar: int = 6, n_az: int = 8):
 _BALL = _ball_rule()
 
 
-def shadow_centroid(geometry: ConeGeometry, centre, radius: float) -> np.ndarray:
+def shadow_centroid(geometry: ConeGeometry, centre, radius) -> np.ndarray:
     """Centroid (c, r) of the attenuation image of a homogeneous sphere, px.
 
     With ``g = B^-1 (X - S)`` the weight of a volume element in the detector
@@ -81,14 +81,15 @@ def shadow_centroid(geometry: ConeGeometry, centre, radius: float) -> np.ndarray
     """
     C = np.asarray(centre, dtype=float)
     pts, W = _BALL
-    X = C[..., None, :] + radius * pts  # (..., m, 3)
+    rad = np.asarray(radius, dtype=float)[..., None, None]   # a scalar, or one per centre
+    X = C[..., None, :] + rad * pts  # (..., m, 3)
     g = (X - geometry.source) @ geometry._Binv.T
     wt = W * np.linalg.norm(X - geometry.source, axis=-1) / g[..., 2] ** 3
     cr = g[..., :2] / g[..., 2:3]
     return np.einsum("...m,...mi->...i", wt, cr) / wt.sum(-1)[..., None]
 
 
-def shadow_bias(geometry: ConeGeometry, centre, radius: float) -> np.ndarray:
+def shadow_bias(geometry: ConeGeometry, centre, radius) -> np.ndarray:
     """``shadow_centroid - project(centre)``, px: what a point model would miss."""
     return shadow_centroid(geometry, centre, radius) - geometry.project(centre)
 

@@ -107,16 +107,20 @@ XYZ_AXES = [{"name": "x", "type": "linear", "direction": [1.0, 0.0, 0.0]},
 
 
 def linear_raster(seed=0, *, rows=512, cols=512, pitch=0.2, sod=100.0, sdd=500.0, diameter=2.0, mu=0.5,
-                  steps=(5.0, 5.0, 8.0), counts=(3, 3, 3), dt=2.0, misalign=(0.5, 2.0, 0.5)) -> Scenario:
+                  steps=(5.0, 5.0, 8.0), counts=(3, 3, 3), dt=2.0, misalign=(0.5, 2.0, 0.5),
+                  true_geometry: ConeGeometry | None = None) -> Scenario:
     """One sphere moved through a raster by three linear axes (Blumensath et al.).
 
     ``counts`` positions per axis centred on zero, ``steps`` apart (mm);
     the sphere sits at the lab origin when every axis reads zero.
-    ``misalign`` = (source sigma mm, detector sigma mm, detector rotation sigma deg).
+    ``misalign`` = (source sigma mm, detector sigma mm, detector rotation sigma deg);
+    ``true_geometry`` replaces that draw (the same system scanned twice).
     """
     rng = np.random.default_rng(seed)
     nominal = ConeGeometry.nominal(sod=sod, sdd=sdd, shape=(rows, cols), pixel_pitch=(pitch, pitch))
     truth_geom = _perturbed_geometry(nominal, rng, *misalign)
+    if true_geometry is not None:
+        truth_geom = true_geometry
     grids = [(np.arange(n) - (n - 1) / 2) * s for n, s in zip(counts, steps)]
     # serpentine raster: the order a stage controller would drive
     pts = []
@@ -135,7 +139,7 @@ def linear_raster(seed=0, *, rows=512, cols=512, pitch=0.2, sod=100.0, sdd=500.0
 
 def rotation_scan(seed=0, *, rows=512, cols=512, pitch=0.2, sod=150.0, sdd=600.0, diameters=(2.0,), mu=0.5,
                   n_spheres=5, n_frames=72, dt=1.0, axis_tilt_deg=0.3, axis_offset_mm=0.3,
-                  misalign=(0.5, 2.0, 0.5)) -> Scenario:
+                  misalign=(0.5, 2.0, 0.5), true_geometry: ConeGeometry | None = None) -> Scenario:
     """Several spheres on a sample rotated by a rotary axis on top of x, y, z stages.
 
     The reference sphere (id 0) sits at the lab origin at zero readings; the
@@ -144,6 +148,8 @@ def rotation_scan(seed=0, *, rows=512, cols=512, pitch=0.2, sod=150.0, sdd=600.0
     rng = np.random.default_rng(seed)
     nominal = ConeGeometry.nominal(sod=sod, sdd=sdd, shape=(rows, cols), pixel_pitch=(pitch, pitch))
     truth_geom = _perturbed_geometry(nominal, rng, *misalign)
+    if true_geometry is not None:
+        truth_geom = true_geometry
     nominal_point = np.zeros(3)
     tilt = rng.normal(size=3)
     tilt -= tilt[1] * np.array([0, 1.0, 0])

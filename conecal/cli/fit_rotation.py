@@ -1,0 +1,74 @@
+"""``conecal fit-rotation``: rotary axes and sphere positions from a rotation scan."""
+
+from __future__ import annotations
+
+import click
+import numpy as np
+
+from ..errors import FitError
+from ..fit.markers import load_observations
+from ..fit.output import fit_summary, geometry_document
+from ..fit.rotation import fit_rotation
+from ..geometry import ConeGeometry
+from ..jsonio import read_json, write_json
+from ..scan import load_scan
+from .options import info, output_option
+
+
+@click.command("fit-rotation")
+@click.argument("scan", type=click.Path())
+@click.option("--markers", "markers", required=True, type=click.Path(dir_okay=False), help="conecal-markers/1 from detect.")
+@click.option("--geometry", "geometry", type=click.Path(dir_okay=False), default=None,
+              help="conecal-geometry/1 (from fit-linear); default: the scan's nominal geometry.")
+@output_option
+@click.option("--refine-geometry", is_flag=True, help="Also refine source and detector (bundle adjustment).")
+@click.option("--loss", type=click.Choice(["linear", "soft_l1", "huber", "cauchy"]), default="linear", show_default=True)
+@click.option("--use-flagged", is_flag=True, help="Also use truncated/overlapping/cluttered markers.")
+def command(scan, markers, geometry, output, refine_geometry, loss, use_flagged):
+    """Estimate every moving rotary axis of SCAN (direction and a point on it,
+    lab frame) and the spheres' positions on the sample.
+
+    The reference sphere (the one at the lab origin at zero readings) is
+    found automatically; spheres missing from some frames are fine. Axes
+    that do not move, and linear axes, keep the values of --geometry.
+
+    \b
+    Examples:
+      conecal fit-rotation demo/rot --markers demo/rot_markers.json --geometry demo/geometry.json -o demo/rot_geometry.json
+      conecal fit-rotation scans/hexapod --markers m.json --geometry g.json --refine-geometry -o g2.json
+    """
+    s = load_scan(scan)
+    gdoc = read_json(geometry, "conecal-geometry") if geometry else None
+    g = ConeGeometry.from_dict(gdoc) if gdoc else s.nominal_geometry()
+    if g.shape != (s.config.detector.rows, s.config.detector.cols):
+        raise click.BadParameter(f"detector shape {list(g.shape)} differs from the scan's", param_hint="--geometry")
+    obs = load_observations(markers, s, use_flagged=use_flagged)
+    fit = fit_rotation(s, obs, g, geometry_doc=gdoc, refine_geometry=refine_geometry, loss=loss)
+    res = fit.result
+    summary = fit_summary(res, fit.residual_px, start="triangulation", loss=loss)
+    axes = []
+    for a in fit.axes:
+        d = {"name": a.name, "type": a.type, "direction": a.direction}
+        if a.type == "rotary":
+            d["point"] = a.point
+        else:
+            d["scale"] = a.scale
+        d["calibrated_here"] = a.name in [fit.model.axes[j].name for j in fit.model.free_axes]
+        axes.append(d)
+    sig = dict(zip(res.names, res.sigma))
+    spheres = []
+    for k, (sid, p) in enumerate(zip(fit.sphere_ids, fit.spheres)):
+        ref = k == fit.model.reference
+        spheres.append({"id": sid, "position": p, "reference": ref,
+                        "sigma": [0.0, 0.0, 0.0] if ref else [sig[f"sphere{k}_{c}"] for c in "xyz"]})
+    residuals = [{"frame": int(f), "id": int(i), "dx": float(d[0]), "dy": float(d[1]), "sigma": float(sg)}
+                 for f, i, d, sg in zip(fit.obs.frame, fit.obs.ids, fit.residual_px, fit.obs.sigma)]
+    doc = geometry_document("fit-rotation", fit.geometry, axes, summary, residuals, str(scan),
+                            extra={"spheres": spheres, "geometry_from": str(geometry) if geometry else "nominal"})
+    if not res.success:
+        raise FitError(f"least squares stopped without converging: {res.message}")
+    write_json(output, doc)
+    info(f"wrote {output}: reprojection RMS {summary['rms_px']:.4f} px over {summary['n_observations']} markers "
+         f"of {len(spheres)} spheres, reduced chi2 {res.reduced_chi2:.2f}")
+    if res.undetermined:
+        info(f"warning: the scan does not determine {', '.join(res.undetermined)}")

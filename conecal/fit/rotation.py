@@ -1,0 +1,321 @@
+"""Rotary axes (or a chain of them) and sphere positions from a rotation scan.
+
+Several spheres fixed to the sample are turned by known readings of a chain
+of axes (``SCAN_FORMAT.md``: lab outwards, ``P = A1(q1)(...An(qn)(p))``).
+Unknowns: for every rotary axis whose reading varies in the scan, its
+direction (two tilts from nominal, deg) and a point on it (two offsets
+perpendicular to the nominal direction, mm; the position along the axis
+is not a property of the axis); the sample-frame position of every sphere
+but the reference one, which sits at the lab origin at zero readings and
+so is ``p = 0``; optionally the 9 detector parameters (bundle adjustment).
+Linear axes and rotary axes that do not move keep the values given.
+
+The model predicts what ``detect`` measures: the shadow centroid.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..errors import FitError, InputError
+from ..geometry import ConeGeometry, axis_angle
+from ..geometry.rotations import orthonormal_complement, skew
+from ..geometry.sphere import shadow_bias
+from .core import FitResult, Parameter, solve
+from .detector_params import DEG, UNITS as DETECTOR_UNITS, DetectorParams
+from .detector_params import NAMES as DETECTOR_NAMES
+from .markers import Observations
+
+
+@dataclass(frozen=True, eq=False)
+class AxisSpec:
+    """One axis of the chain as the fit sees it (directions unit, mm, deg)."""
+
+    name: str
+    type: str                 # 'linear' | 'rotary'
+    direction: np.ndarray
+    point: np.ndarray         # rotary only (zeros for linear)
+    scale: float = 1.0        # linear only
+
+
+class ChainModel:
+    """Parameter vector -> predicted shadow centroids, with analytic Jacobian.
+
+    Layout of x: [per free rotary axis: tilt_a, tilt_b (deg), offset_a,
+    offset_b (mm)] + [per non-reference sphere: x, y, z (mm)] + [9 detector
+    parameters if ``refine_geometry``].
+    """
+
+    def __init__(self, geometry: ConeGeometry, axes: list[AxisSpec], free_axes: list[int], readings: np.ndarray,
+                 sphere_of_obs: np.ndarray, n_spheres: int, reference: int, radii: np.ndarray,
+                 refine_geometry: bool = False):
+        self.g0 = geometry
+        self.axes = axes
+        self.free_axes = list(free_axes)
+        self.q = np.asarray(readings, float)               # (m, n_axes) per observation
+        self.sph = np.asarray(sphere_of_obs, int)
+        self.n_spheres = n_spheres
+        self.reference = reference
+        self.radii = np.asarray(radii, float)
+        self.refine = refine_geometry
+        self.detector = DetectorParams(geometry)
+        self.frames = {j: orthonormal_complement(axes[j].direction) for j in self.free_axes}
+        self.others = [s for s in range(n_spheres) if s != reference]
+        self.n_axis_par = 4 * len(self.free_axes)
+        self.n_sph_par = 3 * len(self.others)
+
+    # ---------------------------------------------------------------- layout
+    def names(self) -> list[str]:
+        out = []
+        for j in self.free_axes:
+            n = self.axes[j].name
+            out += [f"{n}_tilt_a", f"{n}_tilt_b", f"{n}_offset_a", f"{n}_offset_b"]
+        for s in self.others:
+            out += [f"sphere{s}_x", f"sphere{s}_y", f"sphere{s}_z"]
+        if self.refine:
+            out += list(DETECTOR_NAMES)
+        return out
+
+    def units(self) -> list[str]:
+        out = []
+        for _ in self.free_axes:
+            out += ["deg", "deg", "mm", "mm"]
+        out += ["mm"] * self.n_sph_par
+        if self.refine:
+            out += list(DETECTOR_UNITS)
+        return out
+
+    def size(self) -> int:
+        return self.n_axis_par + self.n_sph_par + (9 if self.refine else 0)
+
+    def axis_state(self, x, j):
+        """Direction d, point c, unnormalised direction norm, and the frame (e1, e2) of free axis j."""
+        k = self.free_axes.index(j)
+        ta, tb, oa, ob = x[4 * k:4 * k + 4]
+        e1, e2 = self.frames[j]
+        a = self.axes[j]
+        raw = a.direction + np.tan(ta * DEG) * e1 + np.tan(tb * DEG) * e2
+        nrm = np.linalg.norm(raw)
+        return raw / nrm, a.point + oa * e1 + ob * e2, nrm, (e1, e2)
+
+    def spheres(self, x) -> np.ndarray:
+        P = np.zeros((self.n_spheres, 3))
+        P[self.others] = x[self.n_axis_par:self.n_axis_par + self.n_sph_par].reshape(-1, 3)
+        return P
+
+    def geometry(self, x) -> ConeGeometry:
+        return self.detector.geometry(x[-9:]) if self.refine else self.g0
+
+    def axes_at(self, x) -> list[AxisSpec]:
+        out = []
+        for j, a in enumerate(self.axes):
+            if j in self.free_axes:
+                d, c, _, _ = self.axis_state(x, j)
+                out.append(AxisSpec(a.name, a.type, d, c, a.scale))
+            else:
+                out.append(a)
+        return out
+
+    # ---------------------------------------------------------------- forward
+    def _forward(self, x):
+        """Lab points (m, 3) plus what the Jacobian needs."""
+        p = self.spheres(x)[self.sph]
+        m = p.shape[0]
+        axes = self.axes_at(x)
+        n = len(axes)
+        ys = [None] * n             # point entering axis j (after the inner axes)
+        rots = [None] * n
+        y = p
+        for j in range(n - 1, -1, -1):
+            ax = axes[j]
+            ys[j] = y
+            if ax.type == "linear":
+                rots[j] = None
+                y = y + (ax.scale * self.q[:, j])[:, None] * ax.direction
+            else:
+                R = axis_angle(ax.direction, self.q[:, j] * DEG)
+                rots[j] = R
+                y = ax.point + np.einsum("mij,mj->mi", R, y - ax.point)
+        return y, ys, rots, axes
+
+    def predict(self, x) -> np.ndarray:
+        X, *_ = self._forward(x)
+        g = self.geometry(x)
+        return g.project(X) + shadow_bias(g, X, self.radii[self.sph])
+
+    def lab_points(self, x) -> np.ndarray:
+        return self._forward(x)[0]
+
+    def jacobian(self, x) -> np.ndarray:
+        X, ys, rots, axes = self._forward(x)
+        g = self.geometry(x)
+        m = X.shape[0]
+        _, Jx = g.project_jacobian(X)
+        # the shadow offset follows the points: its derivative by central differences
+        r = self.radii[self.sph]
+        h = 1e-4
+        for k in range(3):
+            e = np.zeros(3)
+            e[k] = h
+            Jx[:, :, k] += (shadow_bias(g, X + e, r) - shadow_bias(g, X - e, r)) / (2 * h)
+        J = np.zeros((m, 2, self.size()))
+        # cumulative rotation of the axes outside axis j: L_j = R_0 ... R_{j-1}
+        L = np.broadcast_to(np.eye(3), (m, 3, 3)).copy()
+        Ls = []
+        for j in range(len(axes)):
+            Ls.append(L.copy())
+            if rots[j] is not None:
+                L = L @ rots[j]
+        JxL = [Jx @ Lj for Lj in Ls]
+        for k, j in enumerate(self.free_axes):
+            d, c, nrm, (e1, e2) = self.axis_state(x, j)
+            th = self.q[:, j] * DEG
+            v = ys[j] - c
+            s, co = np.sin(th)[:, None, None], (1 - np.cos(th))[:, None, None]
+            dv = np.einsum("mi,i->m", v, d)[:, None, None]
+            Jd = -s * skew(v) + co * (dv * np.eye(3) + d[None, :, None] * v[:, None, :])
+            ta, tb = x[4 * k], x[4 * k + 1]
+            for col, (e, t) in enumerate(((e1, ta), (e2, tb))):
+                dd = (e - d * (d @ e)) / nrm * (DEG / np.cos(t * DEG) ** 2)
+                J[:, :, 4 * k + col] = np.einsum("mij,mj->mi", JxL[j], Jd @ dd)
+            Jc = np.eye(3) - rots[j]
+            J[:, :, 4 * k + 2] = np.einsum("mij,mj->mi", JxL[j], Jc @ e1)
+            J[:, :, 4 * k + 3] = np.einsum("mij,mj->mi", JxL[j], Jc @ e2)
+        # spheres: dX/dp = L_total
+        Jp = Jx @ L
+        for i, s_ in enumerate(self.others):
+            rows = self.sph == s_
+            J[rows, :, self.n_axis_par + 3 * i:self.n_axis_par + 3 * i + 3] = Jp[rows]
+        if self.refine:
+            x9 = x[-9:]
+            Jg = self.detector.jacobian(g, X, x9)
+            for i in range(9):
+                e = np.zeros(9)
+                e[i] = 1e-3
+                gp, gm = self.detector.geometry(x9 + e), self.detector.geometry(x9 - e)
+                Jg[:, :, i] += (shadow_bias(gp, X, r) - shadow_bias(gm, X, r)) / 2e-3
+            J[:, :, -9:] = Jg
+        return J
+
+
+def chain_specs(scan, geometry_doc: dict | None) -> list[AxisSpec]:
+    """The scan's axes, taking calibrated values from a geometry file where it names them."""
+    known = {a["name"]: a for a in (geometry_doc or {}).get("axes", [])}
+    out = []
+    for a in scan.config.axes:
+        k = known.get(a.name, {})
+        d = np.asarray(k.get("direction", a.direction), float)
+        p = np.asarray(k.get("point", a.point if a.point is not None else (0, 0, 0)), float)
+        out.append(AxisSpec(a.name, a.type, d / np.linalg.norm(d), p, float(k.get("scale", 1.0))))
+    return out
+
+
+def _nominal_points(axes, readings, p):
+    """Lab positions of sample points p (m, 3) under the given axes."""
+    y = p
+    for j in range(len(axes) - 1, -1, -1):
+        a = axes[j]
+        if a.type == "linear":
+            y = y + (a.scale * readings[:, j])[:, None] * a.direction
+        else:
+            R = axis_angle(a.direction, readings[:, j] * DEG)
+            y = a.point + np.einsum("mij,mj->mi", R, y - a.point)
+    return y
+
+
+def _transforms(axes, readings):
+    """Rotation (m,3,3) and translation (m,3) of the sample-to-lab map."""
+    m = readings.shape[0]
+    t = _nominal_points(axes, readings, np.zeros((m, 3)))
+    R = np.broadcast_to(np.eye(3), (m, 3, 3)).copy()
+    for k in range(3):
+        e = np.zeros((m, 3))
+        e[:, k] = 1.0
+        R[:, :, k] = _nominal_points(axes, readings, e) - t
+    return R, t
+
+
+def triangulate(g: ConeGeometry, axes, readings, xy) -> np.ndarray:
+    """Sample-frame point closest (least squares) to the rays through ``xy``."""
+    R, t = _transforms(axes, readings)
+    D = g.detector_point(xy[:, 0], xy[:, 1])
+    d = D - g.source
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    Rt = np.swapaxes(R, 1, 2)
+    o = np.einsum("mij,mj->mi", Rt, g.source - t)   # ray origins in the sample frame
+    ds = np.einsum("mij,mj->mi", Rt, d)
+    A = np.zeros((3, 3))
+    b = np.zeros(3)
+    for oi, di in zip(o, ds):
+        M = np.eye(3) - np.outer(di, di)
+        A += M
+        b += M @ oi
+    return np.linalg.lstsq(A, b, rcond=None)[0]
+
+
+@dataclass
+class RotationFit:
+    model: ChainModel
+    result: FitResult
+    axes: list[AxisSpec]
+    geometry: ConeGeometry
+    spheres: np.ndarray            # (n, 3) sample frame, mm
+    sphere_ids: list[int]          # marker id per sphere
+    obs: Observations
+    residual_px: np.ndarray
+
+
+def fit_rotation(scan, obs: Observations, geometry: ConeGeometry, *, geometry_doc: dict | None = None,
+                 refine_geometry: bool = False, loss: str = "linear", min_frames: int = 3) -> RotationFit:
+    """Calibrate the moving rotary axes and the sphere positions of a rotation scan."""
+    if scan.config.markers is None:
+        raise InputError(f"{scan.root / 'scan.yaml'}: markers: fit-rotation needs markers.diameter")
+    axes = chain_specs(scan, geometry_doc)
+    q_all = scan.log.readings
+    free = [j for j, a in enumerate(axes) if a.type == "rotary" and np.ptp(q_all[:, j]) > 1e-6]
+    if not free:
+        raise InputError(f"{scan.root / 'log.csv'}: no rotary axis moves in this scan; nothing for fit-rotation to calibrate")
+    if np.any(obs.ids < 0):
+        raise InputError("markers: fit-rotation needs marker identities (ids), found null ids")
+    # spheres: ids seen in enough frames
+    ids, counts = np.unique(obs.ids, return_counts=True)
+    ids = [int(i) for i, c in zip(ids, counts) if c >= min_frames]
+    if not ids:
+        raise FitError(f"no sphere is seen in {min_frames} or more frames")
+    keep = np.isin(obs.ids, ids)
+    obs = Observations(obs.row[keep], obs.frame[keep], obs.ids[keep], obs.xy[keep], obs.sigma[keep])
+    idx = {i: k for k, i in enumerate(ids)}
+    sph = np.array([idx[int(i)] for i in obs.ids])
+    readings = q_all[obs.row]
+    # the reference sphere: the track that follows the lab origin's path best
+    origin_px = geometry.project(_nominal_points(axes, readings, np.zeros((len(obs.row), 3))))
+    dist = np.hypot(*(obs.xy - origin_px).T)
+    med = [np.median(dist[sph == k]) for k in range(len(ids))]
+    ref = int(np.argmin(med))
+    # starting positions by triangulation under the given axes
+    p0 = np.zeros((len(ids), 3))
+    for k in range(len(ids)):
+        if k != ref:
+            rows = sph == k
+            p0[k] = triangulate(geometry, axes, readings[rows], obs.xy[rows])
+    diam = scan.config.markers.diameters or (scan.config.markers.diameter,)
+    # one radius per sphere: the declared diameter nearest to its apparent size
+    radii = np.full(len(ids), diam[0] / 2)
+    model = ChainModel(geometry, axes, free, readings, sph, len(ids), ref, radii, refine_geometry)
+    names, units = model.names(), model.units()
+    x0 = np.zeros(model.size())
+    x0[model.n_axis_par:model.n_axis_par + model.n_sph_par] = p0[model.others].ravel()
+
+    def residuals(x):
+        return ((obs.xy - model.predict(x)) / obs.sigma[:, None]).ravel()
+
+    def jacobian(x):
+        return -(model.jacobian(x) / obs.sigma[:, None, None]).reshape(-1, len(names))
+
+    scales = {"deg": 0.01, "mm": 0.01}
+    params = [Parameter(n, v, unit=u, scale=scales.get(u, 1.0)) for n, v, u in zip(names, x0, units)]
+    res = solve(params, residuals, jacobian, loss=loss)
+    return RotationFit(model, res, model.axes_at(res.x), model.geometry(res.x), model.spheres(res.x),
+                       ids, obs, obs.xy - model.predict(res.x))
