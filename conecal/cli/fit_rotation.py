@@ -16,34 +16,41 @@ from .options import info, output_option
 
 
 @click.command("fit-rotation")
-@click.argument("scan", type=click.Path())
-@click.option("--markers", "markers", required=True, type=click.Path(dir_okay=False), help="conecal-markers/1 from detect.")
+@click.argument("scans", nargs=-1, required=True, type=click.Path())
+@click.option("--markers", "markers", required=True, multiple=True, type=click.Path(dir_okay=False),
+              help="conecal-markers/1 from detect, one per SCAN, in the same order.")
 @click.option("--geometry", "geometry", type=click.Path(dir_okay=False), default=None,
               help="conecal-geometry/1 (from fit-linear); default: the scan's nominal geometry.")
 @output_option
 @click.option("--refine-geometry", is_flag=True, help="Also refine source and detector (bundle adjustment).")
 @click.option("--loss", type=click.Choice(["linear", "soft_l1", "huber", "cauchy"]), default="linear", show_default=True)
 @click.option("--use-flagged", is_flag=True, help="Also use truncated/overlapping/cluttered markers.")
-def command(scan, markers, geometry, output, refine_geometry, loss, use_flagged):
-    """Estimate every moving rotary axis of SCAN (direction and a point on it,
-    lab frame) and the spheres' positions on the sample.
+def command(scans, markers, geometry, output, refine_geometry, loss, use_flagged):
+    """Estimate every moving rotary axis of SCANS (direction and a point on
+    it, lab frame) and the spheres' positions on the sample.
 
-    The reference sphere (the one at the lab origin at zero readings) is
-    found automatically; spheres missing from some frames are fine. Axes
-    that do not move, and linear axes, keep the values of --geometry.
+    Several scans of one manipulator are fitted together (one bundle
+    adjustment); each has its own spheres and reference sphere (the one at
+    the lab origin at zero readings, found automatically). Spheres missing
+    from some frames are fine. Axes that do not move, and linear axes, keep
+    the values of --geometry. With --refine-geometry source and detector
+    are estimated too; a linear raster among SCANS pins them down.
 
     \b
     Examples:
       conecal fit-rotation demo/rot --markers demo/rot_markers.json --geometry demo/geometry.json -o demo/rot_geometry.json
-      conecal fit-rotation scans/hexapod --markers m.json --geometry g.json --refine-geometry -o g2.json
+      conecal fit-rotation lin rot --markers lm.json --markers rm.json --geometry g.json --refine-geometry -o g2.json
     """
-    s = load_scan(scan)
+    if len(markers) != len(scans):
+        raise click.BadParameter(f"{len(scans)} scans but {len(markers)} markers files", param_hint="--markers")
+    loaded = [load_scan(sc) for sc in scans]
+    s = loaded[0]
     gdoc = read_json(geometry, "conecal-geometry") if geometry else None
     g = ConeGeometry.from_dict(gdoc) if gdoc else s.nominal_geometry()
     if g.shape != (s.config.detector.rows, s.config.detector.cols):
         raise click.BadParameter(f"detector shape {list(g.shape)} differs from the scan's", param_hint="--geometry")
-    obs = load_observations(markers, s, use_flagged=use_flagged)
-    fit = fit_rotation(s, obs, g, geometry_doc=gdoc, refine_geometry=refine_geometry, loss=loss)
+    obs = [load_observations(m, sc, use_flagged=use_flagged) for m, sc in zip(markers, loaded)]
+    fit = fit_rotation(loaded, obs, g, geometry_doc=gdoc, refine_geometry=refine_geometry, loss=loss)
     res = fit.result
     summary = fit_summary(res, fit.residual_px, start="triangulation", loss=loss)
     axes = []
@@ -57,13 +64,15 @@ def command(scan, markers, geometry, output, refine_geometry, loss, use_flagged)
         axes.append(d)
     sig = dict(zip(res.names, res.sigma))
     spheres = []
-    for k, (sid, p) in enumerate(zip(fit.sphere_ids, fit.spheres)):
-        ref = k == fit.model.reference
-        spheres.append({"id": sid, "position": p, "reference": ref,
+    for k, ((scan_k, sid), p) in enumerate(zip(fit.sphere_labels, fit.spheres)):
+        ref = k in fit.model.references
+        spheres.append({"scan": str(scans[scan_k]), "id": sid, "position": p, "reference": ref,
                         "sigma": [0.0, 0.0, 0.0] if ref else [sig[f"sphere{k}_{c}"] for c in "xyz"]})
-    residuals = [{"frame": int(f), "id": int(i), "dx": float(d[0]), "dy": float(d[1]), "sigma": float(sg)}
-                 for f, i, d, sg in zip(fit.obs.frame, fit.obs.ids, fit.residual_px, fit.obs.sigma)]
-    doc = geometry_document("fit-rotation", fit.geometry, axes, summary, residuals, str(scan),
+    residuals = [{"scan": str(scans[k]), "frame": int(f), "id": int(i), "dx": float(d[0]), "dy": float(d[1]),
+                  "sigma": float(sg)}
+                 for k, f, i, d, sg in zip(fit.scan_of_obs, fit.obs.frame, fit.obs.ids, fit.residual_px, fit.obs.sigma)]
+    doc = geometry_document("fit-rotation", fit.geometry, axes, summary, residuals,
+                            str(scans[0]) if len(scans) == 1 else [str(x) for x in scans],
                             extra={"spheres": spheres, "geometry_from": str(geometry) if geometry else "nominal"})
     if not res.success:
         raise FitError(f"least squares stopped without converging: {res.message}")

@@ -110,8 +110,24 @@ def solve(parameters: list[Parameter], residuals: Callable[[np.ndarray], np.ndar
         raise FitError(f"{r0.size} residuals for {int(free.sum())} free parameters: too few observations")
     if not np.all(np.isfinite(r0)):
         raise FitError("the initial geometry gives non-finite residuals (a point behind the source?)")
+    # Directions the data cannot see at all (a gauge freedom, such as the
+    # scale along the beam when no sphere distance is known) are held at
+    # their starting value by a stiff prior, so the solver does not wander;
+    # they are reported as undetermined below.
+    sv = np.linalg.svd(jac(start) * scale, full_matrices=False)
+    gauge = sv[2][sv[1] <= 1e-7 * sv[1][0]] if sv[1].size else np.zeros((0, start.size))
+    stiff = 1e3 * np.sqrt(max(r0.size, 1))
+
+    def fun_g(xf):
+        r = fun(xf)
+        return r if not len(gauge) else np.concatenate([r, stiff * gauge @ ((xf - start) / scale)])
+
+    def jac_g(xf):
+        J = jac(xf)
+        return J if not len(gauge) else np.vstack([J, stiff * gauge / scale])
+
     bounded = np.isfinite(lo).any() or np.isfinite(hi).any()
-    res = least_squares(fun, start, jac=jac, bounds=(lo, hi) if bounded else (-np.inf, np.inf),
+    res = least_squares(fun_g, start, jac=jac_g, bounds=(lo, hi) if bounded else (-np.inf, np.inf),
                         method="trf", x_scale=scale, loss=loss, f_scale=f_scale, max_nfev=max_nfev,
                         xtol=1e-12, ftol=1e-12, gtol=1e-12)
     x = full(res.x)
@@ -126,7 +142,7 @@ def solve(parameters: list[Parameter], residuals: Callable[[np.ndarray], np.ndar
     Js = Jin * scale
     U, s, Vt = np.linalg.svd(Js, full_matrices=False)
     smax = s[0] if s.size else 0.0
-    null = [k for k in range(s.size) if s[k] <= null_tol * smax]
+    null = [k for k in range(s.size) if s[k] <= max(null_tol, 1e-7) * smax]
     free_names = [n for n, f in zip(names, free) if f]
     combos = []
     involved = set()

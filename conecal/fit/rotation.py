@@ -45,11 +45,12 @@ class ChainModel:
 
     Layout of x: [per free rotary axis: tilt_a, tilt_b (deg), offset_a,
     offset_b (mm)] + [per non-reference sphere: x, y, z (mm)] + [9 detector
-    parameters if ``refine_geometry``].
+    parameters if ``refine_geometry``]. Reference spheres (one per scan) sit
+    at the sample origin.
     """
 
     def __init__(self, geometry: ConeGeometry, axes: list[AxisSpec], free_axes: list[int], readings: np.ndarray,
-                 sphere_of_obs: np.ndarray, n_spheres: int, reference: int, radii: np.ndarray,
+                 sphere_of_obs: np.ndarray, n_spheres: int, references, radii: np.ndarray,
                  refine_geometry: bool = False):
         self.g0 = geometry
         self.axes = axes
@@ -57,12 +58,12 @@ class ChainModel:
         self.q = np.asarray(readings, float)               # (m, n_axes) per observation
         self.sph = np.asarray(sphere_of_obs, int)
         self.n_spheres = n_spheres
-        self.reference = reference
+        self.references = sorted({int(r) for r in np.atleast_1d(references)})
         self.radii = np.asarray(radii, float)
         self.refine = refine_geometry
         self.detector = DetectorParams(geometry)
         self.frames = {j: orthonormal_complement(axes[j].direction) for j in self.free_axes}
-        self.others = [s for s in range(n_spheres) if s != reference]
+        self.others = [s for s in range(n_spheres) if s not in self.references]
         self.n_axis_par = 4 * len(self.free_axes)
         self.n_sph_par = 3 * len(self.others)
 
@@ -262,60 +263,100 @@ class RotationFit:
     axes: list[AxisSpec]
     geometry: ConeGeometry
     spheres: np.ndarray            # (n, 3) sample frame, mm
-    sphere_ids: list[int]          # marker id per sphere
-    obs: Observations
+    sphere_labels: list[tuple]     # (scan index, marker id) per sphere
+    obs: Observations              # all scans, rows index the stacked readings
+    scan_of_obs: np.ndarray
     residual_px: np.ndarray
 
 
-def fit_rotation(scan, obs: Observations, geometry: ConeGeometry, *, geometry_doc: dict | None = None,
+def _readings_by_name(scan, names: list[str]) -> np.ndarray:
+    """The scan's log readings in the chain's axis order; axes it lacks read 0."""
+    own = list(scan.log.names)
+    extra = [n for n in own if n not in names]
+    if extra:
+        raise InputError(f"{scan.root / 'scan.yaml'}: axes: {extra[0]!r} is not in the first scan's chain "
+                         f"({', '.join(names)}); scans fitted together share one chain")
+    out = np.zeros((len(scan.log), len(names)))
+    for j, n in enumerate(names):
+        if n in own:
+            out[:, j] = scan.log.column(n)
+    return out
+
+
+def fit_rotation(scans, obs_list, geometry: ConeGeometry, *, geometry_doc: dict | None = None,
                  refine_geometry: bool = False, loss: str = "linear", min_frames: int = 3) -> RotationFit:
-    """Calibrate the moving rotary axes and the sphere positions of a rotation scan."""
-    if scan.config.markers is None:
-        raise InputError(f"{scan.root / 'scan.yaml'}: markers: fit-rotation needs markers.diameter")
-    axes = chain_specs(scan, geometry_doc)
-    q_all = scan.log.readings
+    """Calibrate the moving rotary axes and the sphere positions of one or
+    several scans of one manipulator (one bundle adjustment).
+
+    Each scan has its own spheres and its own reference sphere (at the lab
+    origin at zero readings). The chain is the first scan's; the others may
+    use a subset of its axes (missing axes read zero). With
+    ``refine_geometry`` source and detector are estimated jointly: add a
+    linear raster scan to pin them down.
+    """
+    if not isinstance(scans, (list, tuple)):
+        scans, obs_list = [scans], [obs_list]
+    axes = chain_specs(scans[0], geometry_doc)
+    names = [a.name for a in axes]
+    q_scans = [_readings_by_name(sc, names) for sc in scans]
+    q_all = np.vstack(q_scans)
     free = [j for j, a in enumerate(axes) if a.type == "rotary" and np.ptp(q_all[:, j]) > 1e-6]
     if not free:
-        raise InputError(f"{scan.root / 'log.csv'}: no rotary axis moves in this scan; nothing for fit-rotation to calibrate")
-    if np.any(obs.ids < 0):
-        raise InputError("markers: fit-rotation needs marker identities (ids), found null ids")
-    # spheres: ids seen in enough frames
-    ids, counts = np.unique(obs.ids, return_counts=True)
-    ids = [int(i) for i, c in zip(ids, counts) if c >= min_frames]
-    if not ids:
-        raise FitError(f"no sphere is seen in {min_frames} or more frames")
-    keep = np.isin(obs.ids, ids)
-    obs = Observations(obs.row[keep], obs.frame[keep], obs.ids[keep], obs.xy[keep], obs.sigma[keep])
-    idx = {i: k for k, i in enumerate(ids)}
-    sph = np.array([idx[int(i)] for i in obs.ids])
-    readings = q_all[obs.row]
-    # the reference sphere: the track that follows the lab origin's path best
-    origin_px = geometry.project(_nominal_points(axes, readings, np.zeros((len(obs.row), 3))))
-    dist = np.hypot(*(obs.xy - origin_px).T)
-    med = [np.median(dist[sph == k]) for k in range(len(ids))]
-    ref = int(np.argmin(med))
-    # starting positions by triangulation under the given axes
-    p0 = np.zeros((len(ids), 3))
-    for k in range(len(ids)):
-        if k != ref:
-            rows = sph == k
-            p0[k] = triangulate(geometry, axes, readings[rows], obs.xy[rows])
-    diam = scan.config.markers.diameters or (scan.config.markers.diameter,)
-    # one radius per sphere: the declared diameter nearest to its apparent size
-    radii = np.full(len(ids), diam[0] / 2)
-    model = ChainModel(geometry, axes, free, readings, sph, len(ids), ref, radii, refine_geometry)
-    names, units = model.names(), model.units()
+        raise InputError(f"{scans[0].root / 'log.csv'}: no rotary axis moves; nothing for fit-rotation to calibrate")
+    rows, xy, sig, sph, frames, ids_out, scan_of = [], [], [], [], [], [], []
+    labels, refs, radii, p0 = [], [], [], []
+    offset_rows = 0
+    for k, (sc, obs, q) in enumerate(zip(scans, obs_list, q_scans)):
+        if sc.config.markers is None:
+            raise InputError(f"{sc.root / 'scan.yaml'}: markers: fit-rotation needs markers.diameter")
+        if np.any(obs.ids < 0):
+            raise InputError(f"{sc.root}: markers need identities (ids); found null ids")
+        ids, counts = np.unique(obs.ids, return_counts=True)
+        ids = [int(i) for i, c in zip(ids, counts) if c >= min_frames]
+        if not ids:
+            raise FitError(f"{sc.root}: no sphere is seen in {min_frames} or more frames")
+        keep = np.isin(obs.ids, ids)
+        o = Observations(obs.row[keep], obs.frame[keep], obs.ids[keep], obs.xy[keep], obs.sigma[keep])
+        local = np.array([ids.index(int(i)) for i in o.ids])
+        rq = q[o.row]
+        # the reference sphere: the track that follows the lab origin's path best
+        origin_px = geometry.project(_nominal_points(axes, rq, np.zeros((len(o.row), 3))))
+        dist = np.hypot(*(o.xy - origin_px).T)
+        ref = int(np.argmin([np.median(dist[local == s]) for s in range(len(ids))]))
+        base = len(labels)
+        for s_, i in enumerate(ids):
+            labels.append((k, i))
+            if s_ == ref:
+                refs.append(base + s_)
+                p0.append(np.zeros(3))
+            else:
+                sel = local == s_
+                p0.append(triangulate(geometry, axes, rq[sel], o.xy[sel]))
+            radii.append(sc.config.markers.diameter / 2)
+        rows.append(o.row + offset_rows)
+        xy.append(o.xy)
+        sig.append(o.sigma)
+        sph.append(local + base)
+        frames.append(o.frame)
+        ids_out.append(o.ids)
+        scan_of.append(np.full(len(o.row), k))
+        offset_rows += len(q)
+    obs = Observations(np.concatenate(rows), np.concatenate(frames), np.concatenate(ids_out),
+                       np.vstack(xy), np.concatenate(sig))
+    sph = np.concatenate(sph)
+    model = ChainModel(geometry, axes, free, q_all[obs.row], sph, len(labels), refs, np.array(radii), refine_geometry)
+    pnames, units = model.names(), model.units()
     x0 = np.zeros(model.size())
-    x0[model.n_axis_par:model.n_axis_par + model.n_sph_par] = p0[model.others].ravel()
+    x0[model.n_axis_par:model.n_axis_par + model.n_sph_par] = np.array(p0)[model.others].ravel()
 
     def residuals(x):
         return ((obs.xy - model.predict(x)) / obs.sigma[:, None]).ravel()
 
     def jacobian(x):
-        return -(model.jacobian(x) / obs.sigma[:, None, None]).reshape(-1, len(names))
+        return -(model.jacobian(x) / obs.sigma[:, None, None]).reshape(-1, len(pnames))
 
     scales = {"deg": 0.01, "mm": 0.01}
-    params = [Parameter(n, v, unit=u, scale=scales.get(u, 1.0)) for n, v, u in zip(names, x0, units)]
+    params = [Parameter(n, v, unit=u, scale=scales.get(u, 1.0)) for n, v, u in zip(pnames, x0, units)]
     res = solve(params, residuals, jacobian, loss=loss)
     return RotationFit(model, res, model.axes_at(res.x), model.geometry(res.x), model.spheres(res.x),
-                       ids, obs, obs.xy - model.predict(res.x))
+                       labels, obs, np.concatenate(scan_of), obs.xy - model.predict(res.x))
