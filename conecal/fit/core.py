@@ -28,9 +28,11 @@ class Parameter:
     lower: float = -np.inf
     upper: float = np.inf
     unit: str = ""
-    # a change of this size is "meaningful"; sigma beyond ``undetermined_factor``
-    # times it means the data do not determine the parameter
+    # a change of this size is "meaningful" (the solver's step scale)
     scale: float = 1.0
+    # a sigma beyond this means the data do not determine the parameter
+    # (default: ``undetermined_factor`` times ``scale``)
+    undetermined_sigma: float | None = None
 
 
 @dataclass
@@ -162,8 +164,9 @@ def solve(parameters: list[Parameter], residuals: Callable[[np.ndarray], np.ndar
     sig_free = np.sqrt(np.clip(np.diag(cov), 0, None))
     for n in involved:
         sig_free[free_names.index(n)] = np.inf
-    weak = [free_names[i] for i in range(len(free_names))
-            if np.isfinite(sig_free[i]) and sig_free[i] > undetermined_factor * scale[i]]
+    limit = np.array([p.undetermined_sigma if p.undetermined_sigma is not None else undetermined_factor * p.scale
+                      for p in parameters])[free]
+    weak = [free_names[i] for i in range(len(free_names)) if np.isfinite(sig_free[i]) and sig_free[i] > limit[i]]
     undetermined = sorted(involved) + weak
     with np.errstate(invalid="ignore", divide="ignore"):
         d = np.sqrt(np.diag(cov))

@@ -356,7 +356,9 @@ def fit_rotation(scans, obs_list, geometry: ConeGeometry, *, geometry_doc: dict 
         return -(model.jacobian(x) / obs.sigma[:, None, None]).reshape(-1, len(pnames))
 
     scales = {"deg": 0.01, "mm": 0.01}
-    params = [Parameter(n, v, unit=u, scale=scales.get(u, 1.0)) for n, v, u in zip(pnames, x0, units)]
+    # sigma beyond 10 mm or 10 deg: practically undetermined
+    params = [Parameter(n, v, unit=u, scale=scales.get(u, 1.0), undetermined_sigma=10.0)
+              for n, v, u in zip(pnames, x0, units)]
     res = solve(params, residuals, jacobian, loss=loss)
     return RotationFit(model, res, model.axes_at(res.x), model.geometry(res.x), model.spheres(res.x),
                        labels, obs, np.concatenate(scan_of), obs.xy - model.predict(res.x))
