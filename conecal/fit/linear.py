@@ -87,9 +87,9 @@ class LinearModel:
         X = self.points(x)
         return g.project(X) + shadow_bias(g, X, self.radius)
 
-    def bias(self, x):
+    def bias(self, x, coarse: bool = False):
         g = self.geometry(x)
-        return shadow_bias(g, self.points(x), self.radius)
+        return shadow_bias(g, self.points(x), self.radius, coarse)
 
     def jacobian(self, x):
         """d(predicted c, r)/dx, (m, 2, n_params): analytic for the projection;
@@ -109,12 +109,23 @@ class LinearModel:
                 dd = (self.directions[k] - D[j] * (D[j] @ self.directions[k])) / norms[j] * DEG
                 J[:, :, 9 + n + t] = (Jx @ dd) * (self.readings[:, j] * scales[j])[:, None]
                 t += 1
+        return J + self.bias_jacobian(x)
+
+    def bias_jacobian(self, x):
+        """Derivative of the shadow offset (central differences). It changes
+        very slowly, so it is reused while no parameter moved by more than
+        0.2 mm, 0.2 deg or 1e-4 in scale since it was computed."""
         steps = np.where(np.arange(x.size) < 9, 1e-3, 1e-5)
+        cached = self.__dict__.get("_bias_jac")
+        if cached is not None and np.all(np.abs(x - cached[0]) <= np.where(np.arange(x.size) < 9, 0.2, 1e-4)):
+            return cached[1]
+        Jb = np.empty((self.readings.shape[0], 2, x.size))
         for i in range(x.size):
             e = np.zeros(x.size)
             e[i] = steps[i]
-            J[:, :, i] += (self.bias(x + e) - self.bias(x - e)) / (2 * steps[i])
-        return J
+            Jb[:, :, i] = (self.bias(x + e, True) - self.bias(x - e, True)) / (2 * steps[i])
+        object.__setattr__(self, "_bias_jac", (x.copy(), Jb))
+        return Jb
 
 
 def dlt_start(X: np.ndarray, xy: np.ndarray, base: ConeGeometry) -> ConeGeometry | None:

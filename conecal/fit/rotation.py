@@ -160,7 +160,7 @@ class ChainModel:
         for k in range(3):
             e = np.zeros(3)
             e[k] = h
-            Jx[:, :, k] += (shadow_bias(g, X + e, r) - shadow_bias(g, X - e, r)) / (2 * h)
+            Jx[:, :, k] += (shadow_bias(g, X + e, r, True) - shadow_bias(g, X - e, r, True)) / (2 * h)
         J = np.zeros((m, 2, self.size()))
         # cumulative rotation of the axes outside axis j: L_j = R_0 ... R_{j-1}
         L = np.broadcast_to(np.eye(3), (m, 3, 3)).copy()
@@ -196,7 +196,7 @@ class ChainModel:
                 e = np.zeros(9)
                 e[i] = 1e-3
                 gp, gm = self.detector.geometry(x9 + e), self.detector.geometry(x9 - e)
-                Jg[:, :, i] += (shadow_bias(gp, X, r) - shadow_bias(gm, X, r)) / 2e-3
+                Jg[:, :, i] += (shadow_bias(gp, X, r, True) - shadow_bias(gm, X, r, True)) / 2e-3
             J[:, :, -9:] = Jg
         return J
 
