@@ -88,3 +88,47 @@ def test_core_reports_outliers_with_a_robust_loss(rng):
     assert res.value("a") == pytest.approx(2, abs=0.02)
     res = solve(params, r, j)
     assert np.isfinite(res.sigma).all()
+
+
+def test_converges_from_5mm_and_3deg_off(tmp_path, rng):
+    """The issue's bound: nominal off by 5 mm (source, detector) and 3 deg (detector)."""
+    from conecal.geometry import rotvec_to_matrix
+
+    sc = linear_raster(9, rows=256, cols=256, counts=(3, 3, 2), steps=(3.0, 3.0, 10.0))
+    nom = ConeGeometry.nominal(sod=100, sdd=500, shape=(256, 256), pixel_pitch=(0.2, 0.2))
+    R = rotvec_to_matrix(np.deg2rad(3.0) * np.array([1.0, -1.0, 1.0]) / np.sqrt(3))
+    centre = nom.detector_centre + np.array([3.0, -3.0, 2.65])      # |shift| = 5 mm
+    u, v = R @ nom.u, R @ nom.v
+    sc.geometry = nom.replace(source=nom.source + np.array([-3.0, 3.0, 2.65]), u=u, v=v,
+                              detector_origin=centre - 127.5 * 0.2 * u - 127.5 * 0.2 * v)
+    sc.photons = 0
+    d = write_scan(sc, tmp_path / "far")
+    obs, truth = exact_observations(d, 0.02, rng)
+    fit = fit_linear(load_scan(d), obs)
+    gt = ConeGeometry.from_dict(truth["geometry"])
+    sig = dict(zip(fit.result.names, fit.result.sigma))
+    assert np.sqrt(np.mean(fit.residual_px**2)) < 0.05          # converged to the noise floor
+    for k, axis in enumerate("xyz"):
+        assert abs(fit.geometry.source[k] - gt.source[k]) < 4 * sig[f"source_{axis}"] + 1e-3
+    tilt_sigma = np.hypot(sig["detector_rx"], sig["detector_ry"])
+    assert np.degrees(np.arccos(fit.geometry.normal @ gt.normal)) < 4 * tilt_sigma + 0.01
+
+
+def test_axis_scale_and_tilt_are_recovered_or_reported(tmp_path, rng):
+    from conecal.effects import parse_effect
+
+    sc = linear_raster(4, rows=384, cols=384, counts=(3, 3, 3), steps=(4.0, 4.0, 8.0))
+    sc.apply_effects([parse_effect("axis_scale:axis=y,scale=0.004"),
+                      parse_effect("axis_nonorthogonality:axis=y,towards=x,angle=0.3")])
+    sc.photons = 0
+    d = write_scan(sc, tmp_path / "axes")
+    obs, truth = exact_observations(d, 0.02, rng)
+    fit = fit_linear(load_scan(d), obs, axis_scales=True, axis_tilts=True)
+    res = fit.result
+    sig = dict(zip(res.names, res.sigma))
+    det = [n for n in ("scale_y", "tilt_y_to_x") if n not in res.undetermined]
+    # whatever the scan determines must be right within 4 sigma; the rest must be named
+    truth_vals = {"scale_y": 1.004, "tilt_y_to_x": np.degrees(np.tan(np.deg2rad(0.3)))}
+    for n in det:
+        assert abs(res.value(n) - truth_vals[n]) < 4 * sig[n] + 1e-4, (n, res.value(n), sig[n])
+    assert set(det) | set(res.undetermined) >= {"scale_y", "tilt_y_to_x"}

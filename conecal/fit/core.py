@@ -116,22 +116,39 @@ def solve(parameters: list[Parameter], residuals: Callable[[np.ndarray], np.ndar
     # scale along the beam when no sphere distance is known) are held at
     # their starting value by a stiff prior, so the solver does not wander;
     # they are reported as undetermined below.
-    sv = np.linalg.svd(jac(start) * scale, full_matrices=False)
-    gauge = sv[2][sv[1] <= 1e-7 * sv[1][0]] if sv[1].size else np.zeros((0, start.size))
+    def null_directions(xf):
+        _, sv, vt = np.linalg.svd(jac(xf) * scale, full_matrices=False)
+        return vt[sv <= max(null_tol, 1e-7) * sv[0]] if sv.size else np.zeros((0, xf.size))
+
     stiff = 1e3 * np.sqrt(max(r0.size, 1))
-
-    def fun_g(xf):
-        r = fun(xf)
-        return r if not len(gauge) else np.concatenate([r, stiff * gauge @ ((xf - start) / scale)])
-
-    def jac_g(xf):
-        J = jac(xf)
-        return J if not len(gauge) else np.vstack([J, stiff * gauge / scale])
-
     bounded = np.isfinite(lo).any() or np.isfinite(hi).any()
-    res = least_squares(fun_g, start, jac=jac_g, bounds=(lo, hi) if bounded else (-np.inf, np.inf),
-                        method="trf", x_scale=scale, loss=loss, f_scale=f_scale, max_nfev=max_nfev,
-                        xtol=1e-12, ftol=1e-12, gtol=1e-12)
+    gauge = null_directions(start)
+    nfev = 0
+    for attempt in range(2):
+        def fun_g(xf, gauge=gauge):
+            r = fun(xf)
+            return r if not len(gauge) else np.concatenate([r, stiff * gauge @ ((xf - start) / scale)])
+
+        def jac_g(xf, gauge=gauge):
+            J = jac(xf)
+            return J if not len(gauge) else np.vstack([J, stiff * gauge / scale])
+
+        res = least_squares(fun_g, start, jac=jac_g, bounds=(lo, hi) if bounded else (-np.inf, np.inf),
+                            method="trf", x_scale=scale, loss=loss, f_scale=f_scale, max_nfev=max_nfev,
+                            xtol=1e-12, ftol=1e-12, gtol=1e-12)
+        nfev += res.nfev
+        # directions that turn out blind only away from the start: hold them too, and solve again
+        late = null_directions(res.x)
+        if not len(late):
+            break
+        if len(gauge):
+            late = late - (late @ gauge.T) @ gauge
+            late = late[np.linalg.norm(late, axis=1) > 1e-3]
+        if not len(late):
+            break
+        q, _ = np.linalg.qr(np.vstack([gauge, late]).T) if len(gauge) else np.linalg.qr(late.T)
+        gauge = q.T
+    res.nfev = nfev
     x = full(res.x)
     r = fun(res.x)
     J = jac(res.x)

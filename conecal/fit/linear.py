@@ -8,6 +8,12 @@ centre (deg, rotation vector applied to the nominal u, v); optionally each
 axis' scale ``s_j`` and its tilt towards the axes before it (deg; the first
 axis and the second's roll about it fix the lab frame's orientation).
 
+Gauge: the first axis' scale stays 1 (a common scale of all axes trades
+exactly against the source-to-object distance), so the other scales are
+relative to it. The tilts of an axis along the beam trade against lateral
+source and detector shifts; the fit reports such combinations as
+undetermined rather than returning noise.
+
 The model predicts what ``detect`` measures: the centroid of the sphere
 shadow, i.e. the projection of ``X_k`` plus the cone-beam shadow offset.
 """
@@ -225,7 +231,10 @@ def fit_linear(scan, obs: Observations, *, axis_scales: bool = False, axis_tilts
             elif i < 9:
                 ps.append(Parameter(nm, x0[i], unit="deg", scale=1.0))
             elif i < 9 + n:
-                ps.append(Parameter(nm, x0[i], free=axis_scales, unit="", scale=1e-3, lower=0.5, upper=2.0))
+                # the first axis' scale is the unit of length of the raster: a common
+                # scale of all axes trades exactly against the source distance, so
+                # the others are estimated relative to it
+                ps.append(Parameter(nm, x0[i], free=axis_scales and i > 9, unit="", scale=1e-3, lower=0.5, upper=2.0))
             else:
                 ps.append(Parameter(nm, x0[i], free=axis_tilts, unit="deg", scale=0.1))
         return ps
