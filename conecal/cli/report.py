@@ -31,6 +31,15 @@ def _truth_comparison(console, doc) -> None:
         return
     g, t = ConeGeometry.from_dict(doc), ConeGeometry.from_dict(truth["geometry"])
     ang = np.degrees(np.arccos(np.clip(np.dot(g.normal, t.normal), -1, 1)))
+    axis = truth.get("rotary_axis")
+    fitted = next((a for a in doc.get("axes", []) if a.get("calibrated_here") and a.get("type") == "rotary"), None)
+    if axis and fitted:
+        d = np.asarray(fitted["direction"])
+        dp = np.asarray(fitted["point"]) - axis["point"]
+        dp -= (dp @ d) * d
+        console.print(f"  vs truth: rotary axis {fitted['name']} direction "
+                      f"{np.degrees(np.arccos(min(1.0, abs(d @ axis['direction'])))):.5f} deg, "
+                      f"point {np.linalg.norm(dp):.5f} mm")
     console.print(f"  vs truth ({truth_path}): source {np.linalg.norm(g.source - t.source):.4f} mm, "
                   f"detector centre {np.linalg.norm(g.detector_centre - t.detector_centre):.4f} mm, "
                   f"detector normal {ang:.4f} deg, u {np.degrees(np.arccos(np.clip(g.u @ t.u, -1, 1))):.4f} deg")
