@@ -1,0 +1,266 @@
+"""Per-frame 6-DoF pose of a marker holder carried by a robot (Pekel et al.).
+
+For each frame the holder's spheres (``phantom.csv``, holder frame, mm) are
+projected from an initial pose (the robot's joint log through its DH model,
+or the previous frame's fit), the image offset between prediction and
+detections is found by voting, detections are given sphere ids by
+assignment within a gate, and the pose (rotation vector and translation,
+``P_lab = R p + t``) is fitted by least squares with analytic Jacobians on
+the identified reprojection errors, weighted by ``detect``'s sigmas. A
+frame that cannot be trusted is rejected with its reason, never returned
+as ``ok``.
+
+Correspondences are to sphere ids, not to the nearest point of the
+analytic helix: a helix is nearly invariant under a small screw motion,
+so a nearest-helix-point cost barely constrains one pose direction.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy.optimize import least_squares, linear_sum_assignment
+
+from ..geometry import ConeGeometry, RigidTransform, matrix_to_rotvec, rotvec_to_matrix
+from ..geometry.cone import so3_left_jacobian
+from ..geometry.rotations import skew
+from ..geometry.sphere import shadow_bias
+
+
+@dataclass(frozen=True)
+class PoseOptions:
+    """max_rms_px: rejection threshold on the fitted frame's reprojection RMS.
+    prior_mm, prior_deg: how far the true pose may be from the initial one.
+    gate_px: assignment gate after the first fit. min_spheres: fewest
+    identified spheres for a pose (and at least ``min_fraction`` of those
+    predicted on the detector)."""
+
+    max_rms_px: float = 0.5
+    prior_mm: float = 3.0
+    prior_deg: float = 2.0
+    gate_px: float = 1.5
+    min_spheres: int = 8
+    min_fraction: float = 0.5
+
+
+@dataclass
+class FramePose:
+    frame: int
+    status: str
+    R: np.ndarray
+    t: np.ndarray
+    sigma_rotation_deg: np.ndarray = field(default_factory=lambda: np.full(3, np.nan))
+    sigma_translation_mm: np.ndarray = field(default_factory=lambda: np.full(3, np.nan))
+    rms_px: float = float("nan")
+    n_spheres: int = 0
+    ids: list = field(default_factory=list)
+    residual_px: np.ndarray | None = None
+
+
+class PoseProblem:
+    """Projection of holder points under a pose perturbation (w, dt) of (R0, t0)."""
+
+    def __init__(self, geometry: ConeGeometry, points: np.ndarray, radius: float, R0, t0):
+        self.g, self.p, self.r = geometry, points, radius
+        self.R0, self.t0 = np.asarray(R0), np.asarray(t0)
+
+    def transform(self, x):
+        R = rotvec_to_matrix(x[:3]) @ self.R0
+        return R, self.t0 + x[3:]
+
+    def predict(self, x, idx):
+        R, t = self.transform(x)
+        X = self.p[idx] @ R.T + t
+        return self.g.project(X) + shadow_bias(self.g, X, self.r)
+
+    def jacobian(self, x, idx):
+        R, t = self.transform(x)
+        Rp = self.p[idx] @ R.T
+        X = Rp + t
+        _, Jx = self.g.project_jacobian(X)
+        h = 1e-4
+        for k in range(3):  # the shadow offset follows the point (coarse rule, central differences)
+            e = np.zeros(3)
+            e[k] = h
+            Jx[:, :, k] += (shadow_bias(self.g, X + e, self.r, True) - shadow_bias(self.g, X - e, self.r, True)) / (2 * h)
+        dX_dw = -skew(Rp) @ so3_left_jacobian(x[:3])        # (m, 3, 3)
+        J = np.empty((len(idx), 2, 6))
+        J[:, :, :3] = Jx @ dX_dw
+        J[:, :, 3:] = Jx
+        return J
+
+
+def _vote_shift(pred: np.ndarray, det: np.ndarray, max_shift: float, cell: float):
+    """Most voted image offset det - pred (2D histogram of all pairs within
+    ``max_shift``), its support, and the runner-up's support far from it."""
+    d = det[:, None, :] - pred[None, :, :]
+    d = d.reshape(-1, 2)
+    d = d[np.hypot(d[:, 0], d[:, 1]) <= max_shift]
+    if len(d) == 0:
+        return None, 0, 0
+    nb = int(np.ceil(2 * max_shift / cell)) + 1
+    H, xe, ye = np.histogram2d(d[:, 0], d[:, 1], bins=nb, range=[[-max_shift, max_shift]] * 2)
+    # votes in 2x2 neighbourhoods: an offset on a cell border still counts once
+    H2 = H[:-1, :-1] + H[1:, :-1] + H[:-1, 1:] + H[1:, 1:]
+    i, j = np.unravel_index(np.argmax(H2), H2.shape)
+    best = H2[i, j]
+    sel = (d[:, 0] >= xe[i]) & (d[:, 0] < xe[i + 2]) & (d[:, 1] >= ye[j]) & (d[:, 1] < ye[j + 2])
+    shift = np.median(d[sel], axis=0)
+    # runner-up: the best cell at least 3 cells away
+    yy, xx = np.mgrid[0:H2.shape[0], 0:H2.shape[1]]
+    far = (np.abs(yy - i) > 2) | (np.abs(xx - j) > 2)
+    second = H2[far].max() if far.any() else 0
+    return shift, best, second
+
+
+def _assign(pred, det, gate):
+    cost = np.hypot(pred[:, None, 0] - det[None, :, 0], pred[:, None, 1] - det[None, :, 1])
+    r, c = linear_sum_assignment(np.where(cost <= gate, cost, 1e6))
+    ok = cost[r, c] <= gate
+    return r[ok], c[ok]
+
+
+def fit_frame(frame: int, geometry: ConeGeometry, points: np.ndarray, ids: np.ndarray, radius: float,
+              det_xy: np.ndarray, det_sigma: np.ndarray, R0, t0, opt: PoseOptions) -> FramePose:
+    """Pose of one frame from its detections, starting at (R0, t0)."""
+    rejected = FramePose(frame, "", np.asarray(R0), np.asarray(t0))
+    prob = PoseProblem(geometry, points, radius, R0, t0)
+    allidx = np.arange(len(points))
+    pred = prob.predict(np.zeros(6), allidx)
+    rows, cols = geometry.shape
+    m = 1.5 * radius * geometry.magnification(points @ np.asarray(R0).T + t0).mean() / geometry.pixel_pitch[0]
+    on_det = (pred[:, 0] > m) & (pred[:, 0] < cols - 1 - m) & (pred[:, 1] > m) & (pred[:, 1] < rows - 1 - m)
+    if len(det_xy) < opt.min_spheres:
+        rejected.status = f"rejected: {len(det_xy)} markers detected, fewer than {opt.min_spheres}"
+        return rejected
+    # how far the image may move for the prior's pose error (px)
+    mag = geometry.magnification(np.asarray(t0)) / geometry.pixel_pitch[0]
+    reach = np.linalg.norm(points - points.mean(0), axis=1).max()
+    max_shift = 1.5 * (opt.prior_mm + np.deg2rad(opt.prior_deg) * reach) * mag
+    shift, votes, second = _vote_shift(pred[on_det], det_xy, max_shift, cell=max(2.0, 4 * radius * mag / 8))
+    if shift is None or votes < opt.min_spheres:
+        rejected.status = "rejected: no consistent image offset from the initial pose"
+        return rejected
+    if second >= 0.8 * votes:
+        rejected.status = f"rejected: ambiguous correspondences ({int(second)} vs {int(votes)} votes)"
+        return rejected
+    # first correspondences: generous gate around the shifted prediction
+    gate0 = max(4.0, 0.6 * radius * mag * 2)
+    r, c = _assign(pred + shift, det_xy, gate0)
+    x = np.zeros(6)
+    for gate, loss in ((gate0, "soft_l1"), (opt.gate_px, "linear"), (opt.gate_px, "linear")):
+        if len(r) < 6:
+            break
+        sig = det_sigma[c][:, None]
+
+        def res_fn(x, r=r, c=c, sig=sig):
+            return ((det_xy[c] - prob.predict(x, r)) / sig).ravel()
+
+        def jac_fn(x, r=r, sig=sig):
+            return -(prob.jacobian(x, r) / sig[:, :, None]).reshape(-1, 6)
+
+        sol = least_squares(res_fn, x, jac=jac_fn, method="trf", loss=loss, f_scale=5.0, x_scale=np.array(
+            [1e-3, 1e-3, 1e-3, 0.01, 0.01, 0.01]), max_nfev=50)
+        x = sol.x
+        pred = prob.predict(x, allidx)
+        r, c = _assign(pred, det_xy, opt.gate_px)
+    n_vis = int(on_det.sum())
+    if len(r) < max(opt.min_spheres, opt.min_fraction * n_vis):
+        rejected.status = f"rejected: {len(r)} spheres identified of {n_vis} on the detector"
+        return rejected
+    R, t = prob.transform(x)
+    resid = det_xy[c] - prob.predict(x, r)
+    rms = float(np.sqrt(np.mean(resid**2)))
+    J = -(prob.jacobian(x, r) / det_sigma[c][:, None, None]).reshape(-1, 6)
+    try:
+        cov = np.linalg.inv(J.T @ J)
+    except np.linalg.LinAlgError:
+        rejected.status = "rejected: the identified spheres do not fix the pose"
+        return rejected
+    sd = np.sqrt(np.diag(cov))
+    out = FramePose(frame, "ok", R, t, np.degrees(sd[:3]), sd[3:], rms, len(r), [int(ids[i]) for i in r], resid)
+    dang = np.degrees(np.linalg.norm(x[:3]))
+    dpos = np.linalg.norm(x[3:] + (R - np.asarray(R0)) @ np.zeros(3))
+    if rms > opt.max_rms_px:
+        out.status = f"rejected: reprojection RMS {rms:.3f} px above {opt.max_rms_px} px"
+    elif dang > 3 * opt.prior_deg or np.linalg.norm(x[3:]) > 3 * opt.prior_mm + np.deg2rad(dang) * reach:
+        out.status = f"rejected: pose {dang:.2f} deg / {np.linalg.norm(x[3:]):.2f} mm from the initial one, beyond the prior"
+    return out
+
+
+def fit_helix(points: np.ndarray) -> dict:
+    """The helix that best fits the holder's CAD points (in id order).
+
+    Parameters: axis (direction, a point), radius (mm), pitch (mm per turn),
+    phase and angular step per sphere (deg). Returns them with the RMS and
+    per-sphere 3D residuals (mm), to catch a mis-built holder.
+    """
+    P = np.asarray(points, float)
+    c = P.mean(0)
+    _, _, vt = np.linalg.svd(P - c)
+    # the axis is the direction along which the points do not lie on a circle: try the three principal axes
+    best = None
+    for d0 in vt:
+        e1 = np.cross(d0, [1.0, 0, 0]) if abs(d0[0]) < 0.9 else np.cross(d0, [0, 1.0, 0])
+        e1 /= np.linalg.norm(e1)
+        e2 = np.cross(d0, e1)
+        a, b = (P - c) @ e1, (P - c) @ e2
+        A = np.column_stack([a, b, np.ones_like(a)])
+        sol = np.linalg.lstsq(A, a * a + b * b, rcond=None)[0]
+        ca, cb = sol[0] / 2, sol[1] / 2
+        rad = np.sqrt(sol[2] + ca * ca + cb * cb)
+        misfit = np.std(np.hypot(a - ca, b - cb))
+        if best is None or misfit < best[0]:
+            best = (misfit, d0, e1, e2, ca, cb, rad)
+    _, d0, e1, e2, ca, cb, rad = best
+    centre = c + ca * e1 + cb * e2
+    ang = np.unwrap(np.arctan2((P - centre) @ e2, (P - centre) @ e1))
+    k = np.arange(len(P))
+    step, phase = np.polyfit(k, ang, 1)
+    z0 = (P - centre) @ d0
+    zslope, zoff = np.polyfit(ang, z0, 1)
+
+    def model(q):
+        d = q[0:3] / np.linalg.norm(q[0:3])
+        u1 = e1 - d * (d @ e1)
+        u1 /= np.linalg.norm(u1)
+        u2 = np.cross(d, u1)
+        th = q[7] + q[8] * k
+        return (q[3:6] + q[6] * (np.cos(th)[:, None] * u1 + np.sin(th)[:, None] * u2)
+                + (q[9] * th + q[10])[:, None] * d)
+
+    q0 = np.concatenate([d0, centre, [rad, phase, step, zslope, zoff]])
+    sol = least_squares(lambda q: (model(q) - P).ravel(), q0)
+    q = sol.x
+    resid = np.linalg.norm(model(q) - P, axis=1)
+    d = q[0:3] / np.linalg.norm(q[0:3])
+    pitch = abs(q[9]) * 2 * np.pi
+    return {"axis_direction": d.tolist(), "axis_point": q[3:6].tolist(), "radius_mm": float(abs(q[6])),
+            "pitch_mm_per_turn": float(pitch), "phase_deg": float(np.degrees(q[7])),
+            "step_deg": float(np.degrees(q[8])), "handedness": "right" if q[9] > 0 else "left",
+            "rms_mm": float(np.sqrt(np.mean(resid**2))), "residual_mm": resid.tolist()}
+
+
+def placement_errors(poses: list[FramePose], R_log: np.ndarray, t_log: np.ndarray) -> dict:
+    """The robot's placement error per frame: calibrated pose against the
+    joint-log pose (translation offset in mm, lab frame; rotation angle in
+    deg), and its statistics over the ``ok`` frames."""
+    per = []
+    for p, Rl, tl in zip(poses, R_log, t_log):
+        if p.status != "ok":
+            per.append(None)
+            continue
+        dR = p.R @ Rl.T
+        w = matrix_to_rotvec(dR)
+        per.append({"offset_mm": (p.t - tl).tolist(), "rotation_deg": float(np.degrees(np.linalg.norm(w))),
+                    "rotation_vector_deg": np.degrees(w).tolist()})
+    ok = [e for e in per if e is not None]
+    if not ok:
+        return {"frames": per, "summary": None}
+    off = np.array([e["offset_mm"] for e in ok])
+    rot = np.array([e["rotation_deg"] for e in ok])
+    return {"frames": per, "summary": {
+        "offset_mean_mm": off.mean(0).tolist(), "offset_std_mm": off.std(0).tolist(),
+        "offset_max_mm": float(np.linalg.norm(off, axis=1).max()),
+        "rotation_mean_deg": float(rot.mean()), "rotation_std_deg": float(rot.std()), "rotation_max_deg": float(rot.max())}}
