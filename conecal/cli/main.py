@@ -45,9 +45,9 @@ def cli(ctx, verbose, quiet):
 
 
 def _register():
-    from . import detect, fit_linear, fit_rotation, report, simulate
+    from . import detect, fit_linear, fit_pose, fit_rotation, report, simulate
 
-    for mod in (simulate, detect, fit_linear, fit_rotation, report):
+    for mod in (simulate, detect, fit_linear, fit_rotation, fit_pose, report):
         cli.add_command(mod.command)
 
 

@@ -76,7 +76,7 @@ class FitResult:
 def solve(parameters: list[Parameter], residuals: Callable[[np.ndarray], np.ndarray],
           jacobian: Callable[[np.ndarray], np.ndarray], *, loss: str = "linear", f_scale: float = 3.0,
           max_nfev: int = 200, undetermined_factor: float = 10.0, null_tol: float = 1e-9,
-          scale_covariance: bool = False) -> FitResult:
+          scale_covariance: bool = False, tol: float = 1e-12) -> FitResult:
     """Minimise ``sum rho(r(x)^2)`` over the free parameters.
 
     ``residuals(x)`` and ``jacobian(x)`` take the full parameter vector.
@@ -85,6 +85,7 @@ def solve(parameters: list[Parameter], residuals: Callable[[np.ndarray], np.ndar
     chi^2 (for when the sigmas are only relative). With a robust ``loss``
     ('soft_l1', 'huber', 'cauchy'), residuals beyond ``f_scale`` sigmas are
     reported as outliers and the covariance is computed from the inliers.
+    ``tol``: scipy's xtol, ftol and gtol.
     """
     names = [p.name for p in parameters]
     x0 = np.array([p.value for p in parameters], float)
@@ -135,7 +136,7 @@ def solve(parameters: list[Parameter], residuals: Callable[[np.ndarray], np.ndar
 
         res = least_squares(fun_g, start, jac=jac_g, bounds=(lo, hi) if bounded else (-np.inf, np.inf),
                             method="trf", x_scale=scale, loss=loss, f_scale=f_scale, max_nfev=max_nfev,
-                            xtol=1e-12, ftol=1e-12, gtol=1e-12)
+                            xtol=tol, ftol=tol, gtol=tol)
         nfev += res.nfev
         # directions that turn out blind only away from the start: hold them too, and solve again
         late = null_directions(res.x)

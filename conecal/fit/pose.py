@@ -26,6 +26,7 @@ from ..geometry import ConeGeometry, RigidTransform, matrix_to_rotvec, rotvec_to
 from ..geometry.cone import so3_left_jacobian
 from ..geometry.rotations import skew
 from ..geometry.sphere import shadow_bias
+from .core import Parameter, solve
 
 
 @dataclass(frozen=True)
@@ -41,7 +42,7 @@ class PoseOptions:
     prior_deg: float = 2.0
     gate_px: float = 1.5
     min_spheres: int = 8
-    min_fraction: float = 0.5
+    min_fraction: float = 0.3
 
 
 @dataclass
@@ -59,59 +60,79 @@ class FramePose:
 
 
 class PoseProblem:
-    """Projection of holder points under a pose perturbation (w, dt) of (R0, t0)."""
+    """Projection of holder points under a pose perturbation (w, dt) of (R0, t0).
+
+    The cone-beam shadow offset (a few thousandths of a px for holder spheres)
+    is evaluated once per stage at the stage's starting pose (``refresh``)
+    and held fixed while the pose moves by at most millimetres.
+    """
 
     def __init__(self, geometry: ConeGeometry, points: np.ndarray, radius: float, R0, t0):
         self.g, self.p, self.r = geometry, points, radius
         self.R0, self.t0 = np.asarray(R0), np.asarray(t0)
+        self.bias = np.zeros((len(points), 2))
 
     def transform(self, x):
         R = rotvec_to_matrix(x[:3]) @ self.R0
         return R, self.t0 + x[3:]
 
+    def refresh(self, x):
+        R, t = self.transform(x)
+        self.bias = shadow_bias(self.g, self.p @ R.T + t, self.r)
+
     def predict(self, x, idx):
         R, t = self.transform(x)
-        X = self.p[idx] @ R.T + t
-        return self.g.project(X) + shadow_bias(self.g, X, self.r)
+        return self.g.project(self.p[idx] @ R.T + t) + self.bias[idx]
 
     def jacobian(self, x, idx):
         R, t = self.transform(x)
         Rp = self.p[idx] @ R.T
-        X = Rp + t
-        _, Jx = self.g.project_jacobian(X)
-        h = 1e-4
-        for k in range(3):  # the shadow offset follows the point (coarse rule, central differences)
-            e = np.zeros(3)
-            e[k] = h
-            Jx[:, :, k] += (shadow_bias(self.g, X + e, self.r, True) - shadow_bias(self.g, X - e, self.r, True)) / (2 * h)
-        dX_dw = -skew(Rp) @ so3_left_jacobian(x[:3])        # (m, 3, 3)
+        _, Jx = self.g.project_jacobian(Rp + t)
         J = np.empty((len(idx), 2, 6))
-        J[:, :, :3] = Jx @ dX_dw
+        J[:, :, :3] = Jx @ (-skew(Rp) @ so3_left_jacobian(x[:3]))
         J[:, :, 3:] = Jx
         return J
 
 
-def _vote_shift(pred: np.ndarray, det: np.ndarray, max_shift: float, cell: float):
-    """Most voted image offset det - pred (2D histogram of all pairs within
-    ``max_shift``), its support, and the runner-up's support far from it."""
-    d = det[:, None, :] - pred[None, :, :]
-    d = d.reshape(-1, 2)
+POSE_NAMES = ("rx", "ry", "rz", "tx", "ty", "tz")
+
+
+def _solve_stage(prob, x0, r, c, det_xy, det_sigma, loss):
+    prob.refresh(x0)
+    sig = det_sigma[c][:, None]
+
+    def res_fn(x):
+        return ((det_xy[c] - prob.predict(x, r)) / sig).ravel()
+
+    def jac_fn(x):
+        return -(prob.jacobian(x, r) / sig[:, :, None]).reshape(-1, 6)
+
+    params = [Parameter(n, v, scale=s_, undetermined_sigma=np.inf)
+              for n, v, s_ in zip(POSE_NAMES, x0, (1e-3, 1e-3, 1e-3, 0.01, 0.01, 0.01))]
+    # 1e-8: a pose to ~1e-8 of its scale (nm, nrad) is far below the noise
+    return solve(params, res_fn, jac_fn, loss=loss, f_scale=5.0, max_nfev=50, tol=1e-8)
+
+
+def _vote_peaks(pred: np.ndarray, det: np.ndarray, max_shift: float, cell: float, k: int = 3):
+    """Up to ``k`` well separated image offsets det - pred with the most
+    votes (a 2D histogram of all pairs within ``max_shift``): (offset, votes)."""
+    d = (det[:, None, :] - pred[None, :, :]).reshape(-1, 2)
     d = d[np.hypot(d[:, 0], d[:, 1]) <= max_shift]
     if len(d) == 0:
-        return None, 0, 0
+        return []
     nb = int(np.ceil(2 * max_shift / cell)) + 1
     H, xe, ye = np.histogram2d(d[:, 0], d[:, 1], bins=nb, range=[[-max_shift, max_shift]] * 2)
     # votes in 2x2 neighbourhoods: an offset on a cell border still counts once
     H2 = H[:-1, :-1] + H[1:, :-1] + H[:-1, 1:] + H[1:, 1:]
-    i, j = np.unravel_index(np.argmax(H2), H2.shape)
-    best = H2[i, j]
-    sel = (d[:, 0] >= xe[i]) & (d[:, 0] < xe[i + 2]) & (d[:, 1] >= ye[j]) & (d[:, 1] < ye[j + 2])
-    shift = np.median(d[sel], axis=0)
-    # runner-up: the best cell at least 3 cells away
-    yy, xx = np.mgrid[0:H2.shape[0], 0:H2.shape[1]]
-    far = (np.abs(yy - i) > 2) | (np.abs(xx - j) > 2)
-    second = H2[far].max() if far.any() else 0
-    return shift, best, second
+    out = []
+    for _ in range(k):
+        i, j = np.unravel_index(np.argmax(H2), H2.shape)
+        if H2[i, j] <= 0:
+            break
+        sel = (d[:, 0] >= xe[i]) & (d[:, 0] < xe[i + 2]) & (d[:, 1] >= ye[j]) & (d[:, 1] < ye[j + 2])
+        out.append((np.median(d[sel], axis=0), float(H2[i, j])))
+        H2[max(i - 2, 0):i + 3, max(j - 2, 0):j + 3] = 0
+    return out
 
 
 def _assign(pred, det, gate):
@@ -123,69 +144,77 @@ def _assign(pred, det, gate):
 
 def fit_frame(frame: int, geometry: ConeGeometry, points: np.ndarray, ids: np.ndarray, radius: float,
               det_xy: np.ndarray, det_sigma: np.ndarray, R0, t0, opt: PoseOptions) -> FramePose:
-    """Pose of one frame from its detections, starting at (R0, t0)."""
+    """Pose of one frame from its detections, starting at (R0, t0).
+
+    Up to three image offsets voted from all detection/prediction pairs are
+    each carried through a robust fit, a tight re-assignment and a final
+    fit; the hypothesis identifying most spheres wins. Two hypotheses that
+    fit about as well with different poses make the frame ambiguous.
+    """
     rejected = FramePose(frame, "", np.asarray(R0), np.asarray(t0))
-    prob = PoseProblem(geometry, points, radius, R0, t0)
-    allidx = np.arange(len(points))
-    pred = prob.predict(np.zeros(6), allidx)
-    rows, cols = geometry.shape
-    m = 1.5 * radius * geometry.magnification(points @ np.asarray(R0).T + t0).mean() / geometry.pixel_pitch[0]
-    on_det = (pred[:, 0] > m) & (pred[:, 0] < cols - 1 - m) & (pred[:, 1] > m) & (pred[:, 1] < rows - 1 - m)
     if len(det_xy) < opt.min_spheres:
         rejected.status = f"rejected: {len(det_xy)} markers detected, fewer than {opt.min_spheres}"
         return rejected
-    # how far the image may move for the prior's pose error (px)
+    prob = PoseProblem(geometry, points, radius, R0, t0)
+    allidx = np.arange(len(points))
+    prob.refresh(np.zeros(6))
+    pred = prob.predict(np.zeros(6), allidx)
+    rows, cols = geometry.shape
     mag = geometry.magnification(np.asarray(t0)) / geometry.pixel_pitch[0]
+    m = 1.5 * radius * mag
+    on_det = (pred[:, 0] > m) & (pred[:, 0] < cols - 1 - m) & (pred[:, 1] > m) & (pred[:, 1] < rows - 1 - m)
+    n_vis = int(on_det.sum())
+    # how far the image may move for the prior's pose error (px)
     reach = np.linalg.norm(points - points.mean(0), axis=1).max()
     max_shift = 1.5 * (opt.prior_mm + np.deg2rad(opt.prior_deg) * reach) * mag
-    shift, votes, second = _vote_shift(pred[on_det], det_xy, max_shift, cell=max(2.0, 4 * radius * mag / 8))
-    if shift is None or votes < opt.min_spheres:
-        rejected.status = "rejected: no consistent image offset from the initial pose"
-        return rejected
-    if second >= 0.8 * votes:
-        rejected.status = f"rejected: ambiguous correspondences ({int(second)} vs {int(votes)} votes)"
-        return rejected
-    # first correspondences: generous gate around the shifted prediction
-    gate0 = max(4.0, 0.6 * radius * mag * 2)
-    r, c = _assign(pred + shift, det_xy, gate0)
-    x = np.zeros(6)
-    for gate, loss in ((gate0, "soft_l1"), (opt.gate_px, "linear"), (opt.gate_px, "linear")):
+    peaks = _vote_peaks(pred[on_det], det_xy, max_shift, cell=max(2.0, radius * mag))
+    gate0 = max(4.0, 1.2 * radius * mag)
+
+    def within_prior(x):
+        dang = np.degrees(np.linalg.norm(x[:3]))
+        return dang <= 1.5 * opt.prior_deg and np.linalg.norm(x[3:]) <= 1.5 * opt.prior_mm
+
+    hyps, beyond = [], 0
+    for shift, votes in peaks:
+        if hyps and votes < 0.6 * peaks[0][1]:
+            break  # a weak peak: the helix's screw neighbours, not a rival
+        r, c = _assign(pred + shift, det_xy, gate0)
         if len(r) < 6:
-            break
-        sig = det_sigma[c][:, None]
-
-        def res_fn(x, r=r, c=c, sig=sig):
-            return ((det_xy[c] - prob.predict(x, r)) / sig).ravel()
-
-        def jac_fn(x, r=r, sig=sig):
-            return -(prob.jacobian(x, r) / sig[:, :, None]).reshape(-1, 6)
-
-        sol = least_squares(res_fn, x, jac=jac_fn, method="trf", loss=loss, f_scale=5.0, x_scale=np.array(
-            [1e-3, 1e-3, 1e-3, 0.01, 0.01, 0.01]), max_nfev=50)
-        x = sol.x
-        pred = prob.predict(x, allidx)
-        r, c = _assign(pred, det_xy, opt.gate_px)
-    n_vis = int(on_det.sum())
-    if len(r) < max(opt.min_spheres, opt.min_fraction * n_vis):
-        rejected.status = f"rejected: {len(r)} spheres identified of {n_vis} on the detector"
+            continue
+        x = _solve_stage(prob, np.zeros(6), r, c, det_xy, det_sigma, "soft_l1").x
+        if not within_prior(x):
+            beyond += 1  # e.g. the helix shifted by one sphere: a screw motion of ~18 deg
+            continue
+        prev = None
+        for _ in range(3):
+            r, c = _assign(prob.predict(x, allidx), det_xy, opt.gate_px)
+            if len(r) < 6 or (prev is not None and np.array_equal(prev, r)):
+                break
+            res = _solve_stage(prob, x, r, c, det_xy, det_sigma, "linear")
+            x, prev = res.x, r
+        if prev is None or len(r) < 6 or not within_prior(x):
+            continue
+        resid = det_xy[c] - prob.predict(x, r)
+        hyps.append((len(r), float(np.sqrt(np.mean(resid**2))), x, res, r, c, resid))
+    if not hyps:
+        why = "only poses beyond the prior fit" if beyond else "no consistent set of spheres near the initial pose"
+        rejected.status = f"rejected: {why}"
+        return rejected
+    hyps.sort(key=lambda h: (-h[0], h[1]))
+    n, rms, x, res, r, c, resid = hyps[0]
+    for n2, rms2, x2, *_ in hyps[1:]:
+        differs = np.degrees(np.linalg.norm(x2[:3] - x[:3])) > 0.05 or np.linalg.norm(x2[3:] - x[3:]) > 0.05
+        if differs and n2 >= 0.8 * n and rms2 <= opt.max_rms_px:
+            rejected.status = f"rejected: ambiguous, two poses within the prior fit {n} and {n2} spheres"
+            return rejected
+    if n < max(opt.min_spheres, opt.min_fraction * n_vis):
+        rejected.status = f"rejected: {n} spheres identified of {n_vis} on the detector"
         return rejected
     R, t = prob.transform(x)
-    resid = det_xy[c] - prob.predict(x, r)
-    rms = float(np.sqrt(np.mean(resid**2)))
-    J = -(prob.jacobian(x, r) / det_sigma[c][:, None, None]).reshape(-1, 6)
-    try:
-        cov = np.linalg.inv(J.T @ J)
-    except np.linalg.LinAlgError:
-        rejected.status = "rejected: the identified spheres do not fix the pose"
-        return rejected
-    sd = np.sqrt(np.diag(cov))
-    out = FramePose(frame, "ok", R, t, np.degrees(sd[:3]), sd[3:], rms, len(r), [int(ids[i]) for i in r], resid)
-    dang = np.degrees(np.linalg.norm(x[:3]))
-    dpos = np.linalg.norm(x[3:] + (R - np.asarray(R0)) @ np.zeros(3))
+    sd = res.sigma
+    out = FramePose(frame, "ok", R, t, np.degrees(sd[:3]), sd[3:], rms, n, [int(ids[i]) for i in r], resid)
     if rms > opt.max_rms_px:
         out.status = f"rejected: reprojection RMS {rms:.3f} px above {opt.max_rms_px} px"
-    elif dang > 3 * opt.prior_deg or np.linalg.norm(x[3:]) > 3 * opt.prior_mm + np.deg2rad(dang) * reach:
-        out.status = f"rejected: pose {dang:.2f} deg / {np.linalg.norm(x[3:]):.2f} mm from the initial one, beyond the prior"
     return out
 
 
@@ -264,3 +293,39 @@ def placement_errors(poses: list[FramePose], R_log: np.ndarray, t_log: np.ndarra
         "offset_mean_mm": off.mean(0).tolist(), "offset_std_mm": off.std(0).tolist(),
         "offset_max_mm": float(np.linalg.norm(off, axis=1).max()),
         "rotation_mean_deg": float(rot.mean()), "rotation_std_deg": float(rot.std()), "rotation_max_deg": float(rot.max())}}
+
+
+def fit_poses(scan, markers_doc: dict, geometry: ConeGeometry, opt: PoseOptions, *, initial: str = "log",
+              use_flagged: bool = False, progress=None) -> tuple[list[FramePose], np.ndarray, np.ndarray]:
+    """Poses of every frame of a robot scan. ``initial``: 'log' (the joint
+    log through the DH model) or 'previous' (the last good frame's placement
+    error carried to this frame's log pose; the log where there is none).
+    Returns the poses and the joint-log rotations and translations."""
+    from ..errors import InputError
+    from .markers import BIASING_FLAGS
+
+    if scan.phantom is None:
+        raise InputError(f"{scan.root / 'scan.yaml'}: markers.phantom: fit-pose needs the holder's phantom.csv")
+    T = scan.nominal_transforms()
+    pts, ids = scan.phantom.positions, scan.phantom.ids
+    radius = scan.config.markers.diameter / 2
+    by_frame = {int(f["frame"]): f["markers"] for f in markers_doc.get("frames", [])}
+    poses = []
+    carry = None  # (R_err, t_err): last good pose relative to its log pose
+    for k, frame in enumerate(scan.log.frame):
+        ms = [m for m in by_frame.get(int(frame), []) if use_flagged or not set(m.get("flags", [])) & set(BIASING_FLAGS)]
+        xy = np.array([[m["x"], m["y"]] for m in ms]).reshape(-1, 2)
+        sg = np.array([m["sigma"] for m in ms])
+        R0, t0 = T.R[k], T.t[k]
+        if initial == "previous" and carry is not None:
+            R0, t0 = carry[0] @ R0, carry[0] @ (t0 - carry[2]) + carry[2] + carry[1]
+        p = fit_frame(int(frame), geometry, pts, ids, radius, xy, sg, R0, t0, opt)
+        if p.status != "ok" and initial == "previous" and carry is not None:
+            p = fit_frame(int(frame), geometry, pts, ids, radius, xy, sg, T.R[k], T.t[k], opt)
+        if p.status == "ok":
+            dR = p.R @ T.R[k].T
+            carry = (dR, p.t - T.t[k], T.t[k])
+        poses.append(p)
+        if progress:
+            progress(k + 1, len(scan.log))
+    return poses, T.R, T.t

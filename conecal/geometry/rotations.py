@@ -8,11 +8,11 @@ import numpy as np
 def skew(w: np.ndarray) -> np.ndarray:
     """Cross-product matrix ``[w]_x`` with ``skew(w) @ p == cross(w, p)``; shape (..., 3, 3)."""
     w = np.asarray(w, dtype=float)
-    z = np.zeros(w.shape[:-1])
-    return np.stack(
-        [np.stack([z, -w[..., 2], w[..., 1]], -1),
-         np.stack([w[..., 2], z, -w[..., 0]], -1),
-         np.stack([-w[..., 1], w[..., 0], z], -1)], -2)
+    K = np.zeros(w.shape[:-1] + (3, 3))
+    K[..., 0, 1], K[..., 0, 2] = -w[..., 2], w[..., 1]
+    K[..., 1, 0], K[..., 1, 2] = w[..., 2], -w[..., 0]
+    K[..., 2, 0], K[..., 2, 1] = -w[..., 1], w[..., 0]
+    return K
 
 
 def axis_angle(direction: np.ndarray, angle: np.ndarray | float) -> np.ndarray:
@@ -35,6 +35,12 @@ def axis_angle(direction: np.ndarray, angle: np.ndarray | float) -> np.ndarray:
 def rotvec_to_matrix(w: np.ndarray) -> np.ndarray:
     """Rotation matrix of rotation vector ``w`` (axis * angle in rad); (..., 3) -> (..., 3, 3)."""
     w = np.asarray(w, dtype=float)
+    if w.shape == (3,):  # the common single rotation, without the batch machinery
+        th = float(np.sqrt(w @ w))
+        K = skew(w)
+        if th < 1e-8:
+            return np.eye(3) + K + 0.5 * (K @ K)
+        return np.eye(3) + (np.sin(th) / th) * K + ((1 - np.cos(th)) / th**2) * (K @ K)
     theta = np.linalg.norm(w, axis=-1)
     small = theta < 1e-12
     d = np.where(small[..., None], np.array([0.0, 0.0, 1.0]), w / np.where(small, 1.0, theta)[..., None])

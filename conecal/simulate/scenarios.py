@@ -200,12 +200,13 @@ def helix_phantom(n=50, radius=12.0, height=30.0, turns=2.5):
 
 def robot_helix(seed=0, *, rows=640, cols=640, pitch=0.2, sod=250.0, sdd=750.0, diameter=0.8, mu=0.5,
                 n_frames=120, dt=0.5, n_spheres=50, offset_mm=1.0, offset_deg=0.5, jitter_mm=0.02,
-                clusters=3, dense_holder=False, body="solid") -> Scenario:
+                clusters=3, dense_holder=False, body="solid", max_offset: tuple | None = None) -> Scenario:
     """A robot arm carrying a holder with a helix of spheres (Pekel et al.).
 
     The flange joint turns the holder through 360 deg while the other joints
     wiggle slightly; true poses deviate from the joint log by a few pose
-    clusters (``offset_mm``, ``offset_deg``) plus frame jitter. ``body``:
+    clusters (``offset_mm``, ``offset_deg``; or norms of 70-97 % of
+    ``max_offset`` = (mm, deg)) plus frame jitter. ``body``:
     'solid' (a PMMA cylinder enclosing the helix), 'tube' (a thin-walled tube
     inside the helix: strong ridges, a clutter test) or 'none'.
     """
@@ -228,6 +229,11 @@ def robot_helix(seed=0, *, rows=640, cols=640, pitch=0.2, sod=250.0, sdd=750.0, 
     # pose clusters: the arm settles into one of a few repeatable errors
     cl_t = rng.normal(0, offset_mm, (clusters, 3))
     cl_r = np.deg2rad(rng.normal(0, offset_deg, (clusters, 3)))
+    if max_offset is not None:
+        # clusters near a bound (mm, deg): a stress test of the prior
+        for arr, bound in ((cl_t, max_offset[0]), (cl_r, np.deg2rad(max_offset[1]))):
+            arr /= np.linalg.norm(arr, axis=1, keepdims=True)
+            arr *= rng.uniform(0.7, 0.97, (clusters, 1)) * bound
     which = rng.integers(0, clusters, n_frames)
     dR = rotvec_to_matrix(cl_r[which] + np.deg2rad(0.01) * rng.normal(size=(n_frames, 3)))
     dt_ = cl_t[which] + jitter_mm * rng.normal(size=(n_frames, 3))
