@@ -28,7 +28,7 @@ from scipy.optimize import least_squares
 from scipy.spatial import cKDTree
 
 from conecal.detect import detect_scan, options_for_scan
-from conecal.fit.pose import PoseOptions, fit_frame, fit_helix
+from conecal.fit.pose import PoseOptions, fit_frame, fit_helix, helix_screw
 from conecal.geometry import ConeGeometry, rotvec_to_matrix
 from conecal.scan import load_scan
 from conecal.simulate import robot_helix, write_scan
@@ -96,12 +96,13 @@ def run_scan(work: Path, name: str, sc, seed: int, baseline_frames: int, H: int,
     rng = np.random.default_rng(seed)
     rows = {"ok": 0, "rejected": 0, "wrong_ok": 0, "rot": [], "trans": [], "res": [], "time": []}
     helix = fit_helix(pts[np.argsort(ids)])
+    screw = helix_screw(helix)
     base = PaperBaseline(g, helix, pts[np.argsort(ids)], H)
     brows = {"rot": [], "trans": [], "time": [], "rms": []}
     for k, fr in enumerate(doc["frames"]):
         xy, sg = frame_detections(fr, rng if stress else None, 0.2 if stress else 0.0, 3 if stress else 0, s.stack.shape)
         t0 = time.perf_counter()
-        p = fit_frame(k, g, pts, ids, rad, xy, sg, T.R[k], T.t[k], opt)
+        p = fit_frame(k, g, pts, ids, rad, xy, sg, T.R[k], T.t[k], opt, screw)
         rows["time"].append(time.perf_counter() - t0)
         if p.status != "ok":
             rows["rejected"] += 1

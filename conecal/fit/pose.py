@@ -13,6 +13,10 @@ as ``ok``.
 Correspondences are to sphere ids, not to the nearest point of the
 analytic helix: a helix is nearly invariant under a small screw motion,
 so a nearest-helix-point cost barely constrains one pose direction.
+The same symmetry makes a start off by one sphere's screw step (about
+18 deg for the usual holder) fit all but the end spheres; the prior rules
+that out, and a frame whose screw neighbour explains more spheres than the
+fitted pose is rejected as a prior violation.
 """
 
 from __future__ import annotations
@@ -142,8 +146,21 @@ def _assign(pred, det, gate):
     return r[ok], c[ok]
 
 
+def helix_screw(helix: dict) -> RigidTransform:
+    """The holder-frame screw motion that carries each sphere of a uniform
+    helix onto the next one (rotation by one step about the axis, rise by
+    the pitch's share along it)."""
+    d = np.asarray(helix["axis_direction"])
+    c = np.asarray(helix["axis_point"])
+    step = np.deg2rad(helix["step_deg"])
+    R = rotvec_to_matrix(d * step)
+    rise = (1 if helix["handedness"] == "right" else -1) * helix["pitch_mm_per_turn"] * step / (2 * np.pi)
+    return RigidTransform(R, c - R @ c + rise * d)
+
+
 def fit_frame(frame: int, geometry: ConeGeometry, points: np.ndarray, ids: np.ndarray, radius: float,
-              det_xy: np.ndarray, det_sigma: np.ndarray, R0, t0, opt: PoseOptions) -> FramePose:
+              det_xy: np.ndarray, det_sigma: np.ndarray, R0, t0, opt: PoseOptions,
+              screw: RigidTransform | None = None) -> FramePose:
     """Pose of one frame from its detections, starting at (R0, t0).
 
     Up to three image offsets voted from all detection/prediction pairs are
@@ -210,6 +227,23 @@ def fit_frame(frame: int, geometry: ConeGeometry, points: np.ndarray, ids: np.nd
     if n < max(opt.min_spheres, opt.min_fraction * n_vis):
         rejected.status = f"rejected: {n} spheres identified of {n_vis} on the detector"
         return rejected
+    if screw is not None:
+        # A helix is nearly invariant under its own screw: a start off by one
+        # sphere's step gives a pose that fits all but the end spheres. The
+        # neighbours along the screw must not explain the image better.
+        Rb, tb = prob.transform(x)
+        for k in (1, -1, 2, -2):
+            S = screw if k > 0 else screw.inverse()
+            for _ in range(abs(k) - 1):
+                S = S @ (screw if k > 0 else screw.inverse())
+            Xk = (S.apply(points)) @ Rb.T + tb
+            rk, _ = _assign(geometry.project(Xk) + prob.bias, det_xy, opt.gate_px)
+            # as many spheres: the prior decides (the neighbour is a whole step away);
+            # more: the prior was wrong, and this pose with it
+            if len(rk) > n:
+                rejected.status = (f"rejected: the helix fits better shifted by {k:+d} sphere(s): "
+                                   f"the initial pose is off by more than the prior")
+                return rejected
     R, t = prob.transform(x)
     sd = res.sigma
     out = FramePose(frame, "ok", R, t, np.degrees(sd[:3]), sd[3:], rms, n, [int(ids[i]) for i in r], resid)
@@ -310,6 +344,8 @@ def fit_poses(scan, markers_doc: dict, geometry: ConeGeometry, opt: PoseOptions,
     pts, ids = scan.phantom.positions, scan.phantom.ids
     radius = scan.config.markers.diameter / 2
     by_frame = {int(f["frame"]): f["markers"] for f in markers_doc.get("frames", [])}
+    order = np.argsort(ids)
+    screw = helix_screw(fit_helix(pts[order]))
     poses = []
     carry = None  # (R_err, t_err): last good pose relative to its log pose
     for k, frame in enumerate(scan.log.frame):
@@ -319,9 +355,9 @@ def fit_poses(scan, markers_doc: dict, geometry: ConeGeometry, opt: PoseOptions,
         R0, t0 = T.R[k], T.t[k]
         if initial == "previous" and carry is not None:
             R0, t0 = carry[0] @ R0, carry[0] @ (t0 - carry[2]) + carry[2] + carry[1]
-        p = fit_frame(int(frame), geometry, pts, ids, radius, xy, sg, R0, t0, opt)
+        p = fit_frame(int(frame), geometry, pts, ids, radius, xy, sg, R0, t0, opt, screw)
         if p.status != "ok" and initial == "previous" and carry is not None:
-            p = fit_frame(int(frame), geometry, pts, ids, radius, xy, sg, T.R[k], T.t[k], opt)
+            p = fit_frame(int(frame), geometry, pts, ids, radius, xy, sg, T.R[k], T.t[k], opt, screw)
         if p.status == "ok":
             dR = p.R @ T.R[k].T
             carry = (dR, p.t - T.t[k], T.t[k])
