@@ -105,3 +105,20 @@ def test_fit_pose_needs_a_phantom(tmp_path, small_linear_scan):
     assert run(cli, ["detect", str(small_linear_scan), "-o", str(tmp_path / "m.json")]).exit_code == 0
     r = run(cli, ["fit-pose", str(small_linear_scan), "--markers", str(tmp_path / "m.json"), "-o", str(tmp_path / "p.json")])
     assert r.exit_code == 2 and "phantom" in r.output
+
+
+def test_bundle_adjustment_recovers_the_detector_centre(robot_scan, tmp_path):
+    run = CliRunner().invoke
+    assert run(cli, ["detect", str(robot_scan), "-o", str(tmp_path / "m.json")]).exit_code == 0
+    truth = json.loads((robot_scan / "truth.json").read_text())
+    gt = ConeGeometry.from_dict(truth["geometry"])
+    bad = gt.replace(detector_origin=gt.detector_origin + np.array([0.6, -0.4, 1.5]))
+    (tmp_path / "g.json").write_text(json.dumps(dict(bad.to_dict(), format="conecal-geometry/1")))
+    r = run(cli, ["fit-pose", str(robot_scan), "--markers", str(tmp_path / "m.json"), "--geometry", str(tmp_path / "g.json"),
+                  "--refine-geometry", "-o", str(tmp_path / "p.json")])
+    assert r.exit_code == 0, r.output
+    doc = json.loads((tmp_path / "p.json").read_text())
+    err = ConeGeometry.from_dict(doc).detector_centre - gt.detector_centre
+    sig = [doc["bundle_adjustment"]["parameters"][f"detector_centre_{a}"]["sigma"] for a in "xyz"]
+    assert np.all(np.abs(err) < 4 * np.array(sig) + 0.02), (err, sig)
+    assert np.linalg.norm(err) < 0.5 * np.linalg.norm([0.6, -0.4, 1.5])

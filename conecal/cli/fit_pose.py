@@ -8,6 +8,7 @@ import numpy as np
 from .. import __version__
 from ..errors import FitError
 from ..fit.pose import PoseOptions, fit_helix, fit_poses, placement_errors
+from ..fit.pose import refine_geometry as refine_geometry_fn
 from ..geometry import ConeGeometry
 from ..jsonio import read_json, rounded, write_json
 from ..scan import load_scan
@@ -31,7 +32,10 @@ POSES_FORMAT = "conecal-poses/1"
 @click.option("--initial", type=click.Choice(["log", "previous"]), default="log", show_default=True,
               help="Start each frame from the joint log, or from the previous frame's placement error.")
 @click.option("--use-flagged", is_flag=True, help="Also use truncated/overlapping/cluttered markers.")
-def command(scan, markers, geometry, output, max_rms, prior_mm, prior_deg, initial, use_flagged):
+@click.option("--refine-geometry", is_flag=True,
+              help="Refine the detector centre jointly with all poses (one bundle adjustment; the lab frame "
+                   "stays that of --geometry).")
+def command(scan, markers, geometry, output, max_rms, prior_mm, prior_deg, initial, use_flagged, refine_geometry):
     """Estimate the holder's pose (P_lab = R p_holder + t) in every frame of SCAN.
 
     Spheres are identified against phantom.csv by id (not by the nearest
@@ -56,10 +60,22 @@ def command(scan, markers, geometry, output, max_rms, prior_mm, prior_deg, initi
     helix = fit_helix(s.phantom.positions[np.argsort(s.phantom.ids)])
     with progress_bar("fit-pose") as prog:
         poses, R_log, t_log = fit_poses(s, mdoc, g, opt, initial=initial, use_flagged=use_flagged, progress=prog)
-    place = placement_errors(poses, R_log, t_log)
     ok = [p for p in poses if p.status == "ok"]
     if not ok:
         raise FitError(f"no frame could be fitted; first reason: {poses[0].status if poses else 'no frames'}")
+    bundle = None
+    if refine_geometry:
+        from ..fit.markers import BIASING_FLAGS
+        by_frame = {int(f["frame"]): [m for m in f["markers"] if use_flagged or not set(m.get("flags", [])) & set(BIASING_FLAGS)]
+                    for f in mdoc["frames"]}
+        g, bres, poses = refine_geometry_fn(g, poses, s.phantom.positions, s.phantom.ids, s.config.markers.diameter / 2,
+                                            by_frame, opt.gate_px)
+        ok = [p for p in poses if p.status == "ok"]
+        bundle = {"parameters": {n: {"value": float(bres.value(n)), "sigma": float(bres.sigma[i]), "unit": "mm"}
+                                 for i, n in enumerate(bres.names[:3])},
+                  "held": ["source_x", "source_y", "source_z", "detector_rx", "detector_ry", "detector_rz"],
+                  "chi2_reduced": bres.reduced_chi2, "undetermined": [n for n in bres.undetermined if not n.startswith("frame")]}
+    place = placement_errors(poses, R_log, t_log)
     frames = []
     for p, pe in zip(poses, place["frames"]):
         fr = {"frame": p.frame, "R": p.R, "t": p.t, "status": p.status}
@@ -73,7 +89,7 @@ def command(scan, markers, geometry, output, max_rms, prior_mm, prior_deg, initi
            "units": {"t": "mm", "R": "rotation matrix, P_lab = R p_holder + t", "rms_px": "px",
                      "sigma_rotation_deg": "deg (rotation vector components)", "sigma_translation_mm": "mm"},
            "options": {"max_rms_px": max_rms, "prior_mm": prior_mm, "prior_deg": prior_deg, "initial": initial},
-           "helix": helix, "placement": place["summary"],
+           "helix": helix, "placement": place["summary"], "bundle_adjustment": bundle,
            "summary": {"frames": len(poses), "ok": len(ok), "rejected": len(poses) - len(ok),
                        "rejection_rate": (len(poses) - len(ok)) / len(poses), "rms_px": rms_all},
            "frames": frames}

@@ -67,8 +67,8 @@ class PoseProblem:
     """Projection of holder points under a pose perturbation (w, dt) of (R0, t0).
 
     The cone-beam shadow offset (a few thousandths of a px for holder spheres)
-    is evaluated once per stage at the stage's starting pose (``refresh``)
-    and held fixed while the pose moves by at most millimetres.
+    is evaluated at the initial pose (``refresh``) and held fixed while the
+    pose moves by at most millimetres (it changes by ~1e-4 px per mm).
     """
 
     def __init__(self, geometry: ConeGeometry, points: np.ndarray, radius: float, R0, t0):
@@ -81,8 +81,10 @@ class PoseProblem:
         return R, self.t0 + x[3:]
 
     def refresh(self, x):
+        # holder spheres are tiny against their distance to the source: the
+        # 36-point rule is exact to ~1e-9 px here
         R, t = self.transform(x)
-        self.bias = shadow_bias(self.g, self.p @ R.T + t, self.r)
+        self.bias = shadow_bias(self.g, self.p @ R.T + t, self.r, coarse=True)
 
     def predict(self, x, idx):
         R, t = self.transform(x)
@@ -101,8 +103,7 @@ class PoseProblem:
 POSE_NAMES = ("rx", "ry", "rz", "tx", "ty", "tz")
 
 
-def _solve_stage(prob, x0, r, c, det_xy, det_sigma, loss):
-    prob.refresh(x0)
+def _solve_stage(prob, x0, r, c, det_xy, det_sigma, loss, tol=1e-8):
     sig = det_sigma[c][:, None]
 
     def res_fn(x):
@@ -114,7 +115,7 @@ def _solve_stage(prob, x0, r, c, det_xy, det_sigma, loss):
     params = [Parameter(n, v, scale=s_, undetermined_sigma=np.inf)
               for n, v, s_ in zip(POSE_NAMES, x0, (1e-3, 1e-3, 1e-3, 0.01, 0.01, 0.01))]
     # 1e-8: a pose to ~1e-8 of its scale (nm, nrad) is far below the noise
-    return solve(params, res_fn, jac_fn, loss=loss, f_scale=5.0, max_nfev=50, tol=1e-8)
+    return solve(params, res_fn, jac_fn, loss=loss, f_scale=5.0, max_nfev=50, tol=tol)
 
 
 def _vote_peaks(pred: np.ndarray, det: np.ndarray, max_shift: float, cell: float, k: int = 3):
@@ -198,7 +199,11 @@ def fit_frame(frame: int, geometry: ConeGeometry, points: np.ndarray, ids: np.nd
         r, c = _assign(pred + shift, det_xy, gate0)
         if len(r) < 6:
             continue
-        x = _solve_stage(prob, np.zeros(6), r, c, det_xy, det_sigma, "soft_l1").x
+        # the voted image offset, as a lateral move of the holder, is the start
+        x = np.zeros(6)
+        x[3:] = (shift[0] * geometry.u + shift[1] * geometry.v) / mag   # px -> mm at the holder
+        # a rough robust fit: the tight one follows after re-assignment
+        x = _solve_stage(prob, x, r, c, det_xy, det_sigma, "soft_l1", tol=1e-4).x
         if not within_prior(x):
             beyond += 1  # e.g. the helix shifted by one sphere: a screw motion of ~18 deg
             continue
@@ -365,3 +370,84 @@ def fit_poses(scan, markers_doc: dict, geometry: ConeGeometry, opt: PoseOptions,
         if progress:
             progress(k + 1, len(scan.log))
     return poses, T.R, T.t
+
+
+def refine_geometry(geometry: ConeGeometry, poses: list[FramePose], points: np.ndarray, ids: np.ndarray,
+                    radius: float, markers_by_frame: dict, gate_px: float = 1.5):
+    """One bundle adjustment of the detector centre and every ok pose.
+
+    A rigid motion of source, detector and all poses together changes no
+    projection, so the lab frame stays where the given geometry puts it:
+    source position and detector orientation are held, and the detector
+    centre (principal point and source-to-detector distance, mm) is refined
+    jointly with all poses. Returns (geometry, FitResult, refined poses).
+    """
+    from .detector_params import NAMES as DNAMES, DetectorParams
+
+    dp = DetectorParams(geometry)
+    ok = [p for p in poses if p.status == "ok"]
+    id_index = {int(i): k for k, i in enumerate(ids)}
+    obs_f, obs_s, obs_xy, obs_sig = [], [], [], []
+    for f, p in enumerate(ok):
+        ms = markers_by_frame[p.frame]
+        xy = np.array([[m["x"], m["y"]] for m in ms]).reshape(-1, 2)
+        pred = geometry.project(points @ p.R.T + p.t)
+        r, c = _assign(pred, xy, gate_px)
+        for ri, ci in zip(r, c):
+            obs_f.append(f)
+            obs_s.append(ri)
+            obs_xy.append(xy[ci])
+            obs_sig.append(ms[ci]["sigma"])
+    obs_f, obs_s = np.array(obs_f), np.array(obs_s)
+    obs_xy, obs_sig = np.array(obs_xy), np.array(obs_sig)
+    nf = len(ok)
+    R0 = np.array([p.R for p in ok])
+    t0 = np.array([p.t for p in ok])
+    bias = shadow_bias(geometry, np.einsum("mij,mj->mi", R0[obs_f], points[obs_s]) + t0[obs_f], radius)
+
+    def unpack(x):
+        g = dp.geometry(np.concatenate([np.zeros(3), x[:3], np.zeros(3)]))
+        w = x[3:].reshape(nf, 6)
+        R = np.einsum("nij,njk->nik", np.array([rotvec_to_matrix(v) for v in w[:, :3]]), R0)
+        return g, R, t0 + w[:, 3:]
+
+    def residuals(x):
+        g, R, t = unpack(x)
+        X = np.einsum("mij,mj->mi", R[obs_f], points[obs_s]) + t[obs_f]
+        return ((obs_xy - g.project(X) - bias) / obs_sig[:, None]).ravel()
+
+    def jacobian(x):
+        g, R, t = unpack(x)
+        Rp = np.einsum("mij,mj->mi", R[obs_f], points[obs_s])
+        X = Rp + t[obs_f]
+        _, Jx = g.project_jacobian(X)
+        J = np.zeros((len(obs_f), 2, x.size))
+        x9 = np.concatenate([np.zeros(3), x[:3], np.zeros(3)])
+        J[:, :, :3] = dp.jacobian(g, X, x9)[:, :, 3:6]
+        w = x[3:].reshape(nf, 6)
+        Jl = np.array([so3_left_jacobian(v) for v in w[:, :3]])[obs_f]
+        Jrot = Jx @ (-skew(Rp) @ Jl)
+        for k in range(3):
+            J[np.arange(len(obs_f)), :, 3 + 6 * obs_f + k] = Jrot[:, :, k]
+            J[np.arange(len(obs_f)), :, 3 + 6 * obs_f + 3 + k] = Jx[:, :, k]
+        return -(J / obs_sig[:, None, None]).reshape(-1, x.size)
+
+    names = list(DNAMES[3:6]) + [f"frame{p.frame}_{n}" for p in ok for n in POSE_NAMES]
+    params = [Parameter(n, 0.0, scale=0.01 if i < 3 else (1e-3 if (i - 3) % 6 < 3 else 0.01),
+                        unit="mm" if i < 3 or (i - 3) % 6 >= 3 else "rad", undetermined_sigma=10.0)
+              for i, n in enumerate(names)]
+    res = solve(params, residuals, jacobian, tol=1e-10)
+    g, R, t = unpack(res.x)
+    refined = []
+    it = iter(range(nf))
+    for p in poses:
+        if p.status != "ok":
+            refined.append(p)
+            continue
+        f = next(it)
+        sd = res.sigma[3 + 6 * f:9 + 6 * f]
+        sel = obs_f == f
+        resid = (residuals(res.x).reshape(-1, 2) * obs_sig[:, None])[sel]
+        refined.append(FramePose(p.frame, "ok", R[f], t[f], np.degrees(sd[:3]), sd[3:],
+                                 float(np.sqrt(np.mean(resid**2))), int(sel.sum()), p.ids, resid))
+    return g, res, refined
