@@ -30,7 +30,7 @@ from scipy.optimize import minimize_scalar
 from conecal.detect import detect_scan, options_for_scan
 from conecal.fit.core import Parameter, solve
 from conecal.fit.linear import LinearModel
-from conecal.fit.markers import Observations, load_observations
+from conecal.fit.markers import load_observations
 from conecal.fit.rotation import AxisSpec, ChainModel
 from conecal.fit.linear import fit_linear
 from conecal.fit.rotation import fit_rotation

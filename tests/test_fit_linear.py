@@ -9,7 +9,6 @@ from conecal.fit.core import Parameter, solve
 from conecal.fit.linear import LinearModel, fit_linear
 from conecal.fit.markers import Observations
 from conecal.geometry import ConeGeometry
-from conecal.geometry.sphere import shadow_centroid
 from conecal.scan import load_scan
 from conecal.simulate import linear_raster, write_scan
 

@@ -10,7 +10,6 @@ from conecal.cli.main import cli
 from conecal.fit.markers import Observations
 from conecal.fit.rotation import AxisSpec, ChainModel, fit_rotation
 from conecal.geometry import ConeGeometry
-from conecal.scan import load_scan
 from conecal.simulate import linear_raster, rotation_scan, write_scan
 
 

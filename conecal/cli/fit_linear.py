@@ -3,15 +3,12 @@
 from __future__ import annotations
 
 import click
-import numpy as np
 
-from ..errors import FitError
 from ..fit.linear import fit_linear
 from ..fit.markers import load_observations
 from ..fit.output import fit_summary, geometry_document
-from ..jsonio import write_json
 from ..scan import load_scan
-from .options import info, output_option
+from .options import output_option, write_fit
 
 
 @click.command("fit-linear")
@@ -46,10 +43,4 @@ def command(scan, markers, output, axis_scales, axis_tilts, loss, marker_id, use
     residuals = [{"frame": int(f), "id": int(i), "dx": float(d[0]), "dy": float(d[1]), "sigma": float(sg)}
                  for f, i, d, sg in zip(fit.obs.frame, fit.obs.ids, fit.residual_px, fit.obs.sigma)]
     doc = geometry_document("fit-linear", fit.geometry, axes, summary, residuals, str(scan))
-    if not res.success:
-        raise FitError(f"least squares stopped without converging: {res.message}")
-    write_json(output, doc)
-    info(f"wrote {output}: reprojection RMS {summary['rms_px']:.4f} px over {summary['n_observations']} markers"
-         f", reduced chi2 {res.reduced_chi2:.2f}")
-    if res.undetermined:
-        info(f"warning: the scan does not determine {', '.join(res.undetermined)}")
+    write_fit(output, doc, res, summary, "")

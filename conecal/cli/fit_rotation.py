@@ -3,16 +3,14 @@
 from __future__ import annotations
 
 import click
-import numpy as np
 
-from ..errors import FitError
 from ..fit.markers import load_observations
 from ..fit.output import fit_summary, geometry_document
 from ..fit.rotation import fit_rotation
 from ..geometry import ConeGeometry
-from ..jsonio import read_json, write_json
+from ..jsonio import read_json
 from ..scan import load_scan
-from .options import info, output_option
+from .options import output_option, write_fit
 
 
 @click.command("fit-rotation")
@@ -74,10 +72,4 @@ def command(scans, markers, geometry, output, refine_geometry, loss, use_flagged
     doc = geometry_document("fit-rotation", fit.geometry, axes, summary, residuals,
                             str(scans[0]) if len(scans) == 1 else [str(x) for x in scans],
                             extra={"spheres": spheres, "geometry_from": str(geometry) if geometry else "nominal"})
-    if not res.success:
-        raise FitError(f"least squares stopped without converging: {res.message}")
-    write_json(output, doc)
-    info(f"wrote {output}: reprojection RMS {summary['rms_px']:.4f} px over {summary['n_observations']} markers "
-         f"of {len(spheres)} spheres, reduced chi2 {res.reduced_chi2:.2f}")
-    if res.undetermined:
-        info(f"warning: the scan does not determine {', '.join(res.undetermined)}")
+    write_fit(output, doc, res, summary, f" of {len(spheres)} spheres")

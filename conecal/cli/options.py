@@ -46,3 +46,18 @@ def progress_bar(description: str):
             prog.update(task, completed=done, total=total)
 
         yield update
+
+
+def write_fit(output, doc: dict, res, summary: dict, what: str = "") -> None:
+    """Refuse an unconverged fit (exit 1), else write ``doc`` atomically and
+    say how well it fits and what the data leave undetermined."""
+    from ..errors import FitError
+    from ..jsonio import write_json
+
+    if not res.success:
+        raise FitError(f"least squares stopped without converging: {res.message}")
+    write_json(output, doc)
+    info(f"wrote {output}: reprojection RMS {summary['rms_px']:.4f} px over {summary['n_observations']} markers"
+         f"{what}, reduced chi2 {res.reduced_chi2:.2f}")
+    if res.undetermined:
+        info(f"warning: the scan does not determine {', '.join(res.undetermined)}")

@@ -386,7 +386,6 @@ def refine_geometry(geometry: ConeGeometry, poses: list[FramePose], points: np.n
 
     dp = DetectorParams(geometry)
     ok = [p for p in poses if p.status == "ok"]
-    id_index = {int(i): k for k, i in enumerate(ids)}
     obs_f, obs_s, obs_xy, obs_sig = [], [], [], []
     for f, p in enumerate(ok):
         ms = markers_by_frame[p.frame]

@@ -123,7 +123,6 @@ class ChainModel:
     def _forward(self, x):
         """Lab points (m, 3) plus what the Jacobian needs."""
         p = self.spheres(x)[self.sph]
-        m = p.shape[0]
         axes = self.axes_at(x)
         n = len(axes)
         ys = [None] * n             # point entering axis j (after the inner axes)

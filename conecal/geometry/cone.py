@@ -13,7 +13,7 @@ satisfies ``X - S = lam * B @ (c, r, 1)``, hence ``h = B^-1 (X - S)`` and
 
 from __future__ import annotations
 
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 
 import numpy as np
 
