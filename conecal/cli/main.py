@@ -45,9 +45,9 @@ def cli(ctx, verbose, quiet):
 
 
 def _register():
-    from . import detect, fit_linear, fit_pose, fit_rotation, report, simulate
+    from . import compare, detect, export, fit_linear, fit_pose, fit_rotation, report, simulate
 
-    for mod in (simulate, detect, fit_linear, fit_rotation, fit_pose, report):
+    for mod in (simulate, detect, fit_linear, fit_rotation, fit_pose, report, export, compare):
         cli.add_command(mod.command)
 
 

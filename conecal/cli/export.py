@@ -1,0 +1,50 @@
+"""``conecal export``: per-view geometry in the sample frame for a reconstructor."""
+
+from __future__ import annotations
+
+import click
+
+from .. import __version__
+from ..export import astra_vectors, per_view, projection_matrices, views, write_array
+from ..scan import load_scan
+from .options import info
+
+
+@click.command("export")
+@click.argument("result", type=click.Path(dir_okay=False))
+@click.option("--scan", "scan", type=click.Path(), default=None,
+              help="The scan whose log gives each view's readings (for a geometry file).")
+@click.option("--format", "fmt", type=click.Choice(["astra", "matrices"]), required=True,
+              help="astra: cone_vec rows (source, detector centre, u*pu, v*pv); "
+                   "matrices: 3x4 projection matrices to (column, row, 1).")
+@click.option("-o", "--output", required=True, type=click.Path(dir_okay=False),
+              help="Output file: .npy for a numpy array, anything else for text (one view per row).")
+def command(result, scan, fmt, output):
+    """Write the per-view geometry of RESULT (conecal-geometry/1 with --scan,
+    or conecal-poses/1) in the sample frame.
+
+    Each view is the lab geometry seen from the sample at rest (the frame's
+    sample-to-lab transform inverted). mm; pixel coordinates have the
+    centre of img[0, 0] at (0, 0), and the ASTRA detector centre is the
+    point of pixel coordinates ((cols-1)/2, (rows-1)/2).
+
+    \b
+    Examples:
+      conecal export demo/rot_geometry.json --scan demo/rot --format astra -o demo/views.txt
+      conecal export demo/poses.json --format matrices -o demo/matrices.npy
+    """
+    s = load_scan(scan) if scan else None
+    g, frames, T, warnings = views(result, s)
+    geoms = per_view(g, T)
+    rows, cols = g.shape
+    if fmt == "astra":
+        arr = astra_vectors(geoms)
+        header = (f"conecal {__version__} export from {result}: ASTRA cone_vec, one view per row "
+                  f"(srcX srcY srcZ dX dY dZ uX uY uZ vX vY vZ), mm, detector {rows} rows x {cols} cols; "
+                  f"frames {frames[0]}..{frames[-1]}")
+    else:
+        arr = projection_matrices(geoms)
+        header = (f"conecal {__version__} export from {result}: 3x4 projection matrices, row-major, one view per "
+                  f"row, sample frame (mm) -> (column, row, 1); frames {frames[0]}..{frames[-1]}")
+    write_array(output, arr, header)
+    info(f"wrote {output}: {len(geoms)} views ({fmt})" + "".join(f"; {w}" for w in warnings))

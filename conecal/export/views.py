@@ -1,0 +1,100 @@
+"""Per-view geometry in the sample frame, for reconstructors.
+
+A calibration gives the source and detector in the lab frame and, per
+frame, the sample-to-lab transform ``T_k`` (from calibrated axes and the
+scan's log, or from fitted poses). A reconstructor wants the sample at
+rest: view ``k`` is the lab geometry mapped by ``T_k^-1``.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from ..errors import InputError
+from ..geometry import ConeGeometry, RigidTransform
+from ..jsonio import read_json
+from ..kinematics import Chain, LinearAxis, RotaryAxis
+
+
+def _chain_from_doc(doc: dict, path) -> Chain:
+    axes = []
+    for a in doc.get("axes", []):
+        if a.get("type") == "linear":
+            axes.append(LinearAxis(a["name"], a["direction"], float(a.get("scale", 1.0))))
+        elif a.get("type") == "rotary":
+            axes.append(RotaryAxis(a["name"], a["direction"], a.get("point", (0, 0, 0))))
+        else:
+            raise InputError(f"{path}: axes: unknown type {a.get('type')!r}")
+    if not axes:
+        raise InputError(f"{path}: axes: a geometry without axes has no per-view motion; export needs them")
+    return Chain(tuple(axes))
+
+
+def views(result_path, scan=None) -> tuple[ConeGeometry, list[int], RigidTransform, list[str]]:
+    """The lab geometry, frame numbers, sample-to-lab transforms per view and
+    warnings, from a ``conecal-poses/1`` file or a ``conecal-geometry/1``
+    file plus its scan (whose log gives the readings)."""
+    doc = read_json(result_path, ("conecal-geometry", "conecal-poses"))
+    g = ConeGeometry.from_dict(doc)
+    warnings = []
+    if doc["format"].startswith("conecal-poses"):
+        ok = [f for f in doc["frames"] if f["status"] == "ok"]
+        skipped = len(doc["frames"]) - len(ok)
+        if skipped:
+            warnings.append(f"{skipped} rejected frame(s) left out")
+        if not ok:
+            raise InputError(f"{result_path}: no frame has status ok")
+        T = RigidTransform(np.array([f["R"] for f in ok]), np.array([f["t"] for f in ok]))
+        return g, [int(f["frame"]) for f in ok], T, warnings
+    if scan is None:
+        raise InputError(f"{result_path}: a geometry file needs --scan (its log gives each view's axis readings)")
+    chain = _chain_from_doc(doc, result_path)
+    names = list(scan.log.names)
+    missing = [a for a in chain.names if a not in names]
+    if missing:
+        raise InputError(f"{scan.root / 'log.csv'}: has no column for axis {missing[0]!r} of {result_path}")
+    q = np.column_stack([scan.log.column(a) for a in chain.names])
+    return g, [int(f) for f in scan.log.frame], chain.transforms(q), warnings
+
+
+def per_view(g: ConeGeometry, T: RigidTransform) -> list[ConeGeometry]:
+    """Geometry of each view in the sample frame."""
+    inv = T.inverse()
+    return [g.transformed(inv[k]) for k in range(len(T))]
+
+
+def astra_vectors(geoms: list[ConeGeometry]) -> np.ndarray:
+    """ASTRA ``cone_vec`` rows (n, 12): source, detector centre, u*pu, v*pv."""
+    return np.array([gk.to_astra_vec() for gk in geoms])
+
+
+def projection_matrices(geoms: list[ConeGeometry]) -> np.ndarray:
+    """3x4 matrices (n, 3, 4) mapping homogeneous sample points to (c, r, 1)."""
+    return np.array([gk.projection_matrix() for gk in geoms])
+
+
+def write_array(path, array: np.ndarray, header: str) -> None:
+    """``.npy`` as numpy stores it; anything else as text, one view per row,
+    with a commented header; written atomically."""
+    import io
+    import os
+    import tempfile
+
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    try:
+        with os.fdopen(fd, "wb") as fh:
+            if path.suffix == ".npy":
+                np.save(fh, array)
+            else:
+                buf = io.StringIO()
+                np.savetxt(buf, array.reshape(len(array), -1), fmt="%.10g", header=header)
+                fh.write(buf.getvalue().encode())
+        os.replace(tmp, path)
+    except BaseException:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+        raise
