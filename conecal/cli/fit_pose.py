@@ -7,6 +7,7 @@ import numpy as np
 
 from .. import __version__
 from ..errors import FitError
+from ..fit.markers import read_markers
 from ..fit.pose import PoseOptions, fit_helix, fit_poses, placement_errors
 from ..fit.pose import refine_geometry as refine_geometry_fn
 from ..geometry import ConeGeometry
@@ -50,7 +51,7 @@ def command(scan, markers, geometry, output, max_rms, prior_mm, prior_deg, initi
       conecal fit-pose scans/holder --markers m.json --geometry g.json --initial previous -o poses.json
     """
     s = load_scan(scan)
-    mdoc = read_json(markers, "conecal-markers")
+    mdoc = read_markers(markers)
     gdoc = read_json(geometry, "conecal-geometry") if geometry else None
     g = ConeGeometry.from_dict(gdoc) if gdoc else s.nominal_geometry()
     opt = PoseOptions(max_rms_px=max_rms, prior_mm=prior_mm, prior_deg=prior_deg)

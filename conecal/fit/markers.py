@@ -24,8 +24,41 @@ class Observations:
     sigma: np.ndarray    # (m,) px
 
 
-def load_observations(path, scan, *, use_flagged: bool = False) -> Observations:
+def _number(v) -> bool:
+    return isinstance(v, (int, float)) and not isinstance(v, bool) and np.isfinite(v)
+
+
+def read_markers(path) -> dict:
+    """Read and check a ``conecal-markers/1`` file: every frame a number and a
+    list of markers; every marker finite x, y, a positive sigma, an integer
+    or null id and a list of flag strings. InputError names the place."""
     doc = read_json(path, "conecal-markers")
+    frames = doc.get("frames")
+    if not isinstance(frames, list):
+        raise InputError(f"{path}: 'frames' must be a list")
+    for fi, fr in enumerate(frames):
+        if not isinstance(fr, dict) or not isinstance(fr.get("frame"), int) or isinstance(fr.get("frame"), bool) \
+                or not isinstance(fr.get("markers"), list):
+            raise InputError(f"{path}: frames[{fi}]: needs an integer 'frame' and a list 'markers'")
+        for mi, m in enumerate(fr["markers"]):
+            where = f"{path}: frames[{fi}].markers[{mi}]"
+            if not isinstance(m, dict):
+                raise InputError(f"{where}: must be an object")
+            for key in ("x", "y", "sigma"):
+                if not _number(m.get(key)):
+                    raise InputError(f"{where}: {key!r} must be a finite number, got {m.get(key)!r}")
+            if m["sigma"] <= 0:
+                raise InputError(f"{where}: 'sigma' must be > 0, got {m['sigma']!r}")
+            if m.get("id") is not None and (not isinstance(m["id"], int) or isinstance(m["id"], bool)):
+                raise InputError(f"{where}: 'id' must be an integer or null, got {m['id']!r}")
+            flags = m.get("flags", [])
+            if not isinstance(flags, list) or not all(isinstance(f, str) for f in flags):
+                raise InputError(f"{where}: 'flags' must be a list of strings, got {flags!r}")
+    return doc
+
+
+def load_observations(path, scan, *, use_flagged: bool = False) -> Observations:
+    doc = read_markers(path)
     shape = doc.get("detector", {}).get("shape")
     expect = [scan.config.detector.rows, scan.config.detector.cols]
     if shape is not None and list(shape) != expect:
@@ -33,20 +66,11 @@ def load_observations(path, scan, *, use_flagged: bool = False) -> Observations:
     row_of = {int(f): i for i, f in enumerate(scan.log.frame)}
     rows, frames, ids, xy, sig = [], [], [], [], []
     for fi, fr in enumerate(doc.get("frames", [])):
-        try:
-            k = int(fr["frame"])
-            markers = fr["markers"]
-        except (KeyError, TypeError, ValueError):
-            raise InputError(f"{path}: frames[{fi}]: needs 'frame' and 'markers'") from None
+        k, markers = fr["frame"], fr["markers"]
         if k not in row_of:
             raise InputError(f"{path}: frames[{fi}]: frame {k} is not in the scan's log")
-        for mi, m in enumerate(markers):
-            try:
-                x, y, s = float(m["x"]), float(m["y"]), float(m["sigma"])
-            except (KeyError, TypeError, ValueError):
-                raise InputError(f"{path}: frames[{fi}].markers[{mi}]: needs numbers x, y, sigma") from None
-            if not (np.isfinite(x) and np.isfinite(y) and np.isfinite(s) and s > 0):
-                raise InputError(f"{path}: frames[{fi}].markers[{mi}]: x, y must be finite and sigma > 0")
+        for m in markers:
+            x, y, s = float(m["x"]), float(m["y"]), float(m["sigma"])
             if not use_flagged and any(f in BIASING_FLAGS for f in m.get("flags", [])):
                 continue
             rows.append(row_of[k])
