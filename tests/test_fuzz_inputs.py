@@ -18,12 +18,16 @@ scalars = st.one_of(st.none(), st.booleans(), st.integers(-10**6, 10**6), st.flo
                     st.text(max_size=8), st.lists(st.floats(-1e3, 1e3), max_size=5))
 
 
-def check(result):
-    """Exit 0 or 2; on 2 one line starting with 'Error:' and no traceback."""
-    assert result.exit_code in (0, 2), (result.exit_code, result.output, result.exception)
-    if result.exit_code == 2:
+def check(result, fit: bool = False):
+    """Exit 0 or 2 (bad input: one line starting with 'Error:'); for a fit
+    also 1 with 'Fit failed: <why>'. Never an internal error or a traceback."""
+    allowed = (0, 1, 2) if fit else (0, 2)
+    assert result.exit_code in allowed, (result.exit_code, result.output, result.exception)
+    assert "internal error" not in result.output and "Traceback" not in result.output, result.output
+    if result.exit_code:
         lines = result.output.strip().splitlines()
-        assert lines and lines[-1].startswith("Error") and "Traceback" not in result.output, result.output
+        start = "Fit failed" if result.exit_code == 1 else "Error"
+        assert lines and lines[-1].startswith(start), result.output
 
 
 @pytest.fixture
@@ -135,4 +139,4 @@ def test_markers_file_corruptions(pristine, data):
         fr["frame"] = data.draw(scalars)
     bad = scan_dir / "bad.json"
     bad.write_text(json.dumps(doc, allow_nan=True))
-    check(run(cli, ["fit-linear", str(scan_dir), "--markers", str(bad), "-o", str(scan_dir / "g.json")]))
+    check(run(cli, ["fit-linear", str(scan_dir), "--markers", str(bad), "-o", str(scan_dir / "g.json")]), fit=True)

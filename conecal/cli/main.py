@@ -27,6 +27,14 @@ class ConecalGroup(click.Group):
         except KeyboardInterrupt:
             click.echo("Interrupted; no output was written.", err=True)
             sys.exit(130)
+        except (click.exceptions.ClickException, click.exceptions.Exit, click.exceptions.Abort):
+            raise  # click's own usage errors: it prints them and exits 2
+        except Exception as exc:  # a bug, not the user's fault: one line unless -v
+            if (ctx.obj or {}).get("verbosity", 0) > 0:
+                raise
+            click.echo(f"Error: internal error ({type(exc).__name__}: {exc}); no output was written. "
+                       f"Run with -v for the traceback and please report it.", err=True)
+            sys.exit(1)
 
 
 @click.group(cls=ConecalGroup, context_settings={"help_option_names": ["-h", "--help"]})

@@ -247,8 +247,8 @@ def fit_linear(scan, obs: Observations, *, axis_scales: bool = False, axis_tilts
     for label, x0 in starts:
         try:
             res = solve(params(x0), residuals, jacobian, loss=loss)
-        except FitError:
-            continue
+        except (FitError, ValueError, np.linalg.LinAlgError):
+            continue  # this start broke down numerically; the other may not
         if best is None or res.cost < best[1].cost - 1e-9:
             best = (label, res)
     if best is None:

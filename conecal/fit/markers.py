@@ -33,6 +33,9 @@ def read_markers(path) -> dict:
     list of markers; every marker finite x, y, a positive sigma, an integer
     or null id and a list of flag strings. InputError names the place."""
     doc = read_json(path, "conecal-markers")
+    shape = (doc.get("detector") or {}).get("shape")
+    if not (isinstance(shape, list) and len(shape) == 2 and all(isinstance(v, int) and v > 0 for v in shape)):
+        shape = None
     frames = doc.get("frames")
     if not isinstance(frames, list):
         raise InputError(f"{path}: 'frames' must be a list")
@@ -49,6 +52,8 @@ def read_markers(path) -> dict:
                     raise InputError(f"{where}: {key!r} must be a finite number, got {m.get(key)!r}")
             if m["sigma"] <= 0:
                 raise InputError(f"{where}: 'sigma' must be > 0, got {m['sigma']!r}")
+            if shape is not None and not (-shape[1] <= m["x"] <= 2 * shape[1] and -shape[0] <= m["y"] <= 2 * shape[0]):
+                raise InputError(f"{where}: ({m['x']!r}, {m['y']!r}) px lies far outside the {shape[1]}x{shape[0]} detector")
             if m.get("id") is not None and (not isinstance(m["id"], int) or isinstance(m["id"], bool)):
                 raise InputError(f"{where}: 'id' must be an integer or null, got {m['id']!r}")
             flags = m.get("flags", [])
