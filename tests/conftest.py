@@ -24,3 +24,15 @@ def small_linear_scan(tmp_path_factory):
 
     sc = linear_raster(3, rows=256, cols=256, counts=(2, 2, 2), steps=(4.0, 4.0, 8.0))
     return write_scan(sc, tmp_path_factory.mktemp("scans") / "linear", seed=3)
+
+
+@pytest.fixture(scope="session")
+def system(tmp_path_factory):
+    """A linear raster and a rotation scan of one system (one true geometry), small and fast."""
+    from conecal.simulate import linear_raster, rotation_scan, write_scan
+
+    root = tmp_path_factory.mktemp("system")
+    lin = linear_raster(11, rows=256, cols=256, counts=(3, 3, 2), steps=(3.0, 3.0, 8.0))
+    rot = rotation_scan(11, rows=256, cols=256, sod=100.0, sdd=500.0, n_frames=24, n_spheres=4,
+                        true_geometry=lin.geometry)
+    return write_scan(lin, root / "lin", seed=1), write_scan(rot, root / "rot", seed=2)

@@ -12,14 +12,10 @@ from conecal.kinematics import Chain, LinearAxis, RotaryAxis
 
 
 @pytest.fixture(scope="module")
-def rotation_result(tmp_path_factory):
-    from conecal.simulate import linear_raster, rotation_scan, write_scan
-
+def rotation_result(system, tmp_path_factory):
+    """fit-linear then fit-rotation on the shared two-scan system."""
+    dl, dr = system
     root = tmp_path_factory.mktemp("exp")
-    lin = linear_raster(21, rows=256, cols=256, counts=(3, 3, 2), steps=(3.0, 3.0, 8.0))
-    rot = rotation_scan(21, rows=256, cols=256, sod=100.0, sdd=500.0, n_frames=12, n_spheres=4,
-                        true_geometry=lin.geometry)
-    dl, dr = write_scan(lin, root / "lin"), write_scan(rot, root / "rot")
     run = CliRunner().invoke
     for args in (["detect", dl, "-o", root / "lm.json"], ["detect", dr, "-o", root / "rm.json"],
                  ["fit-linear", dl, "--markers", root / "lm.json", "-o", root / "g.json"],

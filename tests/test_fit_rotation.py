@@ -3,14 +3,12 @@
 import json
 
 import numpy as np
-import pytest
 from click.testing import CliRunner
 
 from conecal.cli.main import cli
 from conecal.fit.markers import Observations
 from conecal.fit.rotation import AxisSpec, ChainModel, fit_rotation
 from conecal.geometry import ConeGeometry
-from conecal.simulate import linear_raster, rotation_scan, write_scan
 
 
 def test_chain_jacobian_matches_finite_differences(rng):
@@ -92,16 +90,6 @@ def test_two_rotary_axes_of_a_chain_are_recovered(rng):
         assert np.linalg.norm(dp) < 0.05 and np.linalg.norm(dp) < 4 * s_pt, (tru.name, np.linalg.norm(dp), s_pt)
     assert fit.result.undetermined == []
     assert abs(np.sqrt(fit.result.reduced_chi2) - 1) < 0.1
-
-
-@pytest.fixture(scope="module")
-def system(tmp_path_factory):
-    """A linear raster and a rotation scan of one system, small and fast."""
-    root = tmp_path_factory.mktemp("system")
-    lin = linear_raster(11, rows=256, cols=256, counts=(3, 3, 2), steps=(3.0, 3.0, 8.0))
-    rot = rotation_scan(11, rows=256, cols=256, sod=100.0, sdd=500.0, n_frames=24, n_spheres=4,
-                        true_geometry=lin.geometry)
-    return write_scan(lin, root / "lin", seed=1), write_scan(rot, root / "rot", seed=2)
 
 
 def test_end_to_end_through_detect_and_the_cli(system, tmp_path):
