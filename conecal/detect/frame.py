@@ -6,14 +6,24 @@ pixel integration are symmetric and leave it unbiased; the cone-beam offset
 from the projected sphere centre is predicted by
 :func:`conecal.geometry.shadow_centroid`, so fits model exactly this point.
 
-Steps: (1) on a frame downsampled by ``f``, a white top-hat removes the
-background and every structure wider than the largest marker (plate edges,
-field-of-view borders), Gaussian smoothing matched to the smallest marker
-and a maximum filter give candidate peaks above ``threshold`` noise sigmas;
-(2) per candidate at full resolution, a robust plane fitted on an annulus
-is subtracted and the centroid and the second moment (radius, anisotropy)
-are iterated; (3) shape, size and contrast tests reject rods, edges, blobs
-and ghosts; (4) flags mark truncated and overlapping shadows.
+Steps: (1) on a frame downsampled by a power of two, a white top-hat
+removes the background and every structure wider than the largest marker
+(plate edges, field-of-view borders); Gaussian smoothing matched to the
+smallest marker and a maximum filter give candidate peaks above
+``threshold`` robust sigmas, and a Hessian test drops ridges (rods, walls).
+(2) Per candidate at full resolution: a size from the half-maximum area,
+then a robust quadratic (or planar) background fitted on an annulus
+(neighbours masked) and the centroid and second moment over an
+anti-aliased window, iterated (numba kernels). (3) sigma propagates the
+pixel noise, which grows with attenuation, and the background slope's
+uncertainty; it grows, and the ``clutter`` flag is set, when the annulus
+holds structure the background cannot follow, when the shadow's core and
+whole window disagree, or when the shadow is not point-symmetric.
+(4) Anisotropy, chord-profile misfit and SNR tests reject rods, merged
+shadows and irregular blobs; ``truncated`` and ``overlap`` flags mark
+shadows cut by the detector or field of view and shadows that touch. The
+scan-level density test against the median marker (ghosts, faint spheres)
+lives in :mod:`conecal.detect.pipeline`.
 """
 
 from __future__ import annotations
