@@ -65,3 +65,24 @@ def test_markers_carry_the_contract_fields(cluttered_scan):
             assert set(m) >= {"id", "x", "y", "sigma", "flags"}
             assert m["sigma"] > 0
             assert set(m["flags"]) <= {"truncated", "overlap", "clutter"}
+
+
+def test_compressed_stack_with_forked_workers(small_linear_scan, tmp_path):
+    """zlib pages are read through file handles, not a memory map: a worker
+    process must not share its parent's handle (and so its file offset)."""
+    import shutil
+
+    import tifffile
+
+    d = tmp_path / "zip"
+    shutil.copytree(small_linear_scan, d)
+    tifffile.imwrite(d / "projections.tif", tifffile.imread(d / "projections.tif"), compression="zlib")
+    s = load_scan(d)
+    assert s.stack._views is None          # the handle path, not the memory map
+    s.stack.read(0)                        # the parent now holds a handle
+    opt = options_for_scan(s)
+    a = detect_scan(s, opt, workers=1)
+    b = detect_scan(s, opt, workers=2)
+    assert json.dumps(a, sort_keys=True) == json.dumps(b, sort_keys=True)
+    ref = detect_scan(load_scan(small_linear_scan), opt, workers=1)
+    assert [m["x"] for f in a["frames"] for m in f["markers"]] == [m["x"] for f in ref["frames"] for m in f["markers"]]

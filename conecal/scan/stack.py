@@ -1,12 +1,15 @@
 """Lazy projection stacks: a multi-page TIFF or a folder of single-page TIFFs.
 
 Frames are read one at a time and converted to attenuation ``-ln(I/I0)``;
-memory stays bounded by the frames in flight, never the whole stack. Each
-thread gets its own file handle so that frames can be read in parallel.
+memory stays bounded by the frames in flight, never the whole stack.
+Uncompressed contiguous pages are memory-mapped; other pages are read
+through a file handle per thread and per process, so that frames can be
+read in parallel by threads or forked workers.
 """
 
 from __future__ import annotations
 
+import os
 import threading
 from pathlib import Path
 
@@ -111,11 +114,13 @@ class ProjectionStack:
         return layout
 
     def _handle(self) -> tifffile.TiffFile:
-        tf = getattr(self._local, "tf", None)
-        if tf is None:
-            tf = tifffile.TiffFile(self.path)
-            self._local.tf = tf
-        return tf
+        # one handle per thread and per process: a forked worker must not
+        # share its parent's file offset
+        held = getattr(self._local, "tf", None)
+        if held is None or held[0] != os.getpid():
+            held = (os.getpid(), tifffile.TiffFile(self.path))
+            self._local.tf = held
+        return held[1]
 
     def read_raw(self, k: int) -> np.ndarray:
         """Frame ``k`` as stored (no conversion)."""
@@ -167,7 +172,7 @@ class ProjectionStack:
         return a
 
     def close(self) -> None:
-        tf = getattr(self._local, "tf", None)
-        if tf is not None:
-            tf.close()
-            self._local.tf = None
+        held = getattr(self._local, "tf", None)
+        if held is not None and held[0] == os.getpid():
+            held[1].close()
+        self._local.tf = None
