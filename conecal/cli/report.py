@@ -45,10 +45,50 @@ def _truth_comparison(console, doc) -> None:
                   f"detector normal {ang:.4f} deg, u {np.degrees(np.arccos(np.clip(g.u @ t.u, -1, 1))):.4f} deg")
 
 
+def _report_poses(console, path, doc) -> None:
+    """fit-pose: frames kept and why others were rejected, accuracy, helix, robot placement."""
+    from collections import Counter
+
+    import numpy as np
+    from rich.table import Table
+
+    sm = doc.get("summary", {})
+    console.print(f"[bold]{path}[/] — fit-pose on {doc.get('scan', '?')}: {sm.get('ok')}/{sm.get('frames')} frames ok, "
+                  f"reprojection RMS {sm.get('rms_px', float('nan')):.4f} px")
+    reasons = Counter(f["status"].split(":", 1)[1].strip().split(" (")[0] for f in doc["frames"] if f["status"] != "ok")
+    for why, n in reasons.most_common():
+        console.print(f"  [yellow]{n} rejected[/]: {why}")
+    ok = [f for f in doc["frames"] if f["status"] == "ok"]
+    if ok:
+        sr = np.array([f["sigma_rotation_deg"] for f in ok])
+        st = np.array([f["sigma_translation_mm"] for f in ok])
+        console.print(f"  per-frame 1σ: rotation {np.median(np.linalg.norm(sr, axis=1)):.4f} deg, "
+                      f"translation {np.median(np.linalg.norm(st, axis=1)):.4f} mm (medians)")
+    h = doc.get("helix")
+    if h:
+        console.print(f"  holder helix: radius {h['radius_mm']:.4f} mm, pitch {h['pitch_mm_per_turn']:.4f} mm/turn, "
+                      f"{h['handedness']}-handed, CAD residual {h['rms_mm']:.4f} mm RMS "
+                      f"(worst sphere {max(h['residual_mm']):.4f} mm)")
+    pl = doc.get("placement")
+    if pl:
+        t = Table(title="robot placement error (fitted vs joint log)", title_justify="left")
+        for c in ("", "x", "y", "z"):
+            t.add_column(c, justify="right")
+        t.add_row("offset mean mm", *(f"{v:.3f}" for v in pl["offset_mean_mm"]))
+        t.add_row("offset std mm", *(f"{v:.3f}" for v in pl["offset_std_mm"]))
+        console.print(t)
+        console.print(f"  rotation {pl['rotation_mean_deg']:.3f} ± {pl['rotation_std_deg']:.3f} deg "
+                      f"(max {pl['rotation_max_deg']:.3f}); largest offset {pl['offset_max_mm']:.3f} mm")
+    ba = doc.get("bundle_adjustment")
+    if ba:
+        console.print("  bundle adjustment: " + ", ".join(
+            f"{n} {p['value']:+.4f} ± {p['sigma']:.4f} mm" for n, p in ba["parameters"].items()))
+
+
 @click.command("report")
 @click.argument("results", nargs=-1, required=True, type=click.Path(dir_okay=False))
 def command(results):
-    """Summarise fit RESULTS (conecal-geometry/1) on the terminal.
+    """Summarise fit RESULTS (conecal-geometry/1, conecal-poses/1) on the terminal.
 
     One table per result: each parameter's initial and final value with its
     1-sigma uncertainty, the reprojection RMS, and warnings about
@@ -63,7 +103,10 @@ def command(results):
 
     console = Console()
     for path in results:
-        doc = read_json(path, "conecal-geometry")
+        doc = read_json(path, ("conecal-geometry", "conecal-poses"))
+        if doc["format"].startswith("conecal-poses"):
+            _report_poses(console, path, doc)
+            continue
         fit = doc.get("fit", {})
         table = Table(title=f"{path} — {doc.get('stage', '?')} on {doc.get('scan', '?')}", title_justify="left")
         for col in ("parameter", "unit", "initial", "final", "± 1σ", ""):
