@@ -22,6 +22,7 @@ class Observations:
     ids: np.ndarray      # (m,) int (-1 when unknown)
     xy: np.ndarray       # (m, 2) px
     sigma: np.ndarray    # (m,) px
+    radius: np.ndarray | None = None   # (m,) shadow radius px, where detect gave it
 
 
 def _number(v) -> bool:
@@ -69,7 +70,7 @@ def load_observations(path, scan, *, use_flagged: bool = False) -> Observations:
     if shape is not None and list(shape) != expect:
         raise InputError(f"{path}: detector shape {shape} does not match the scan's {expect} (rows, cols)")
     row_of = {int(f): i for i, f in enumerate(scan.log.frame)}
-    rows, frames, ids, xy, sig = [], [], [], [], []
+    rows, frames, ids, xy, sig, rad = [], [], [], [], [], []
     for fi, fr in enumerate(doc.get("frames", [])):
         k, markers = fr["frame"], fr["markers"]
         if k not in row_of:
@@ -83,5 +84,7 @@ def load_observations(path, scan, *, use_flagged: bool = False) -> Observations:
             ids.append(-1 if m.get("id") is None else int(m["id"]))
             xy.append((x, y))
             sig.append(s)
+            r = m.get("radius")
+            rad.append(float(r) if isinstance(r, (int, float)) and not isinstance(r, bool) and np.isfinite(r) else np.nan)
     return Observations(np.array(rows, int), np.array(frames, int), np.array(ids, int),
-                        np.array(xy, float).reshape(-1, 2), np.array(sig, float))
+                        np.array(xy, float).reshape(-1, 2), np.array(sig, float), np.array(rad, float))

@@ -282,6 +282,16 @@ def _readings_by_name(scan, names: list[str]) -> np.ndarray:
     return out
 
 
+def _declared_radius(scan, geometry: ConeGeometry, position, radius_px) -> float:
+    """The declared sphere radius (mm) nearest to a sphere's apparent size:
+    scans may hold spheres of several sizes (``markers.diameters``)."""
+    declared = scan.config.markers.diameters or (scan.config.markers.diameter,)
+    if len(declared) == 1 or radius_px is None or not np.isfinite(radius_px).any():
+        return declared[0] / 2
+    mm = 2 * np.nanmedian(radius_px) * geometry.pixel_pitch[0] / geometry.magnification(position)
+    return min(declared, key=lambda d: abs(d - mm)) / 2
+
+
 def fit_rotation(scans, obs_list, geometry: ConeGeometry, *, geometry_doc: dict | None = None,
                  refine_geometry: bool = False, loss: str = "linear", min_frames: int = 3) -> RotationFit:
     """Calibrate the moving rotary axes and the sphere positions of one or
@@ -315,7 +325,8 @@ def fit_rotation(scans, obs_list, geometry: ConeGeometry, *, geometry_doc: dict 
         if not ids:
             raise FitError(f"{sc.root}: no sphere is seen in {min_frames} or more frames")
         keep = np.isin(obs.ids, ids)
-        o = Observations(obs.row[keep], obs.frame[keep], obs.ids[keep], obs.xy[keep], obs.sigma[keep])
+        o = Observations(obs.row[keep], obs.frame[keep], obs.ids[keep], obs.xy[keep], obs.sigma[keep],
+                         None if obs.radius is None else obs.radius[keep])
         local = np.array([ids.index(int(i)) for i in o.ids])
         rq = q[o.row]
         # the reference sphere: the track that follows the lab origin's path best
@@ -331,7 +342,7 @@ def fit_rotation(scans, obs_list, geometry: ConeGeometry, *, geometry_doc: dict 
             else:
                 sel = local == s_
                 p0.append(triangulate(geometry, axes, rq[sel], o.xy[sel]))
-            radii.append(sc.config.markers.diameter / 2)
+            radii.append(_declared_radius(sc, geometry, p0[-1], o.radius[local == s_] if o.radius is not None else None))
         rows.append(o.row + offset_rows)
         xy.append(o.xy)
         sig.append(o.sigma)
