@@ -30,8 +30,7 @@ class Comparison:
 
 def _fov_points(g: ConeGeometry, n: int = 7) -> np.ndarray:
     rows, cols = g.shape
-    m = g.sdd / abs(np.dot(-g.source, g.normal)) if abs(np.dot(-g.source, g.normal)) > 0 else 1.0
-    half = 0.45 * min(rows * g.pixel_pitch[1], cols * g.pixel_pitch[0]) / m
+    half = 0.45 * min(rows * g.pixel_pitch[1], cols * g.pixel_pitch[0]) / float(g.magnification(np.zeros(3)))
     s = np.linspace(-half, half, n)
     return np.stack(np.meshgrid(s, s, s, indexing="ij"), -1).reshape(-1, 3)
 

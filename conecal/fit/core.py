@@ -75,7 +75,7 @@ class FitResult:
 
 def solve(parameters: list[Parameter], residuals: Callable[[np.ndarray], np.ndarray],
           jacobian: Callable[[np.ndarray], np.ndarray], *, loss: str = "linear", f_scale: float = 3.0,
-          max_nfev: int = 200, undetermined_factor: float = 10.0, null_tol: float = 1e-9,
+          max_nfev: int = 200, undetermined_factor: float = 10.0, null_tol: float = 1e-7,
           scale_covariance: bool = False, tol: float = 1e-12) -> FitResult:
     """Minimise ``sum rho(r(x)^2)`` over the free parameters.
 
@@ -119,7 +119,7 @@ def solve(parameters: list[Parameter], residuals: Callable[[np.ndarray], np.ndar
     # they are reported as undetermined below.
     def null_directions(xf):
         _, sv, vt = np.linalg.svd(jac(xf) * scale, full_matrices=False)
-        return vt[sv <= max(null_tol, 1e-7) * sv[0]] if sv.size else np.zeros((0, xf.size))
+        return vt[sv <= null_tol * sv[0]] if sv.size else np.zeros((0, xf.size))
 
     stiff = 1e3 * np.sqrt(max(r0.size, 1))
     bounded = np.isfinite(lo).any() or np.isfinite(hi).any()
@@ -162,7 +162,7 @@ def solve(parameters: list[Parameter], residuals: Callable[[np.ndarray], np.ndar
     Js = Jin * scale
     U, s, Vt = np.linalg.svd(Js, full_matrices=False)
     smax = s[0] if s.size else 0.0
-    null = [k for k in range(s.size) if s[k] <= max(null_tol, 1e-7) * smax]
+    null = [k for k in range(s.size) if s[k] <= null_tol * smax]
     free_names = [n for n, f in zip(names, free) if f]
     combos = []
     involved = set()

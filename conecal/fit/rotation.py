@@ -23,6 +23,7 @@ from ..errors import FitError, InputError
 from ..geometry import ConeGeometry, axis_angle
 from ..geometry.rotations import orthonormal_complement, skew
 from ..geometry.sphere import shadow_bias
+from ..kinematics import Chain, LinearAxis, RotaryAxis
 from .core import FitResult, Parameter, solve
 from .detector_params import DEG, UNITS as DETECTOR_UNITS, DetectorParams
 from .detector_params import NAMES as DETECTOR_NAMES
@@ -212,34 +213,16 @@ def chain_specs(scan, geometry_doc: dict | None) -> list[AxisSpec]:
     return out
 
 
-def _nominal_points(axes, readings, p):
-    """Lab positions of sample points p (m, 3) under the given axes."""
-    y = p
-    for j in range(len(axes) - 1, -1, -1):
-        a = axes[j]
-        if a.type == "linear":
-            y = y + (a.scale * readings[:, j])[:, None] * a.direction
-        else:
-            R = axis_angle(a.direction, readings[:, j] * DEG)
-            y = a.point + np.einsum("mij,mj->mi", R, y - a.point)
-    return y
-
-
-def _transforms(axes, readings):
-    """Rotation (m,3,3) and translation (m,3) of the sample-to-lab map."""
-    m = readings.shape[0]
-    t = _nominal_points(axes, readings, np.zeros((m, 3)))
-    R = np.broadcast_to(np.eye(3), (m, 3, 3)).copy()
-    for k in range(3):
-        e = np.zeros((m, 3))
-        e[:, k] = 1.0
-        R[:, :, k] = _nominal_points(axes, readings, e) - t
-    return R, t
+def _chain(axes: list[AxisSpec]) -> Chain:
+    """The kinematic chain these axes describe (readings in mm and degrees)."""
+    return Chain(tuple(LinearAxis(a.name, a.direction, a.scale) if a.type == "linear"
+                       else RotaryAxis(a.name, a.direction, a.point) for a in axes))
 
 
 def triangulate(g: ConeGeometry, axes, readings, xy) -> np.ndarray:
     """Sample-frame point closest (least squares) to the rays through ``xy``."""
-    R, t = _transforms(axes, readings)
+    T = _chain(axes).transforms(readings)
+    R, t = T.R, T.t
     D = g.detector_point(xy[:, 0], xy[:, 1])
     d = D - g.source
     d /= np.linalg.norm(d, axis=1, keepdims=True)
@@ -330,7 +313,7 @@ def fit_rotation(scans, obs_list, geometry: ConeGeometry, *, geometry_doc: dict 
         local = np.array([ids.index(int(i)) for i in o.ids])
         rq = q[o.row]
         # the reference sphere: the track that follows the lab origin's path best
-        origin_px = geometry.project(_nominal_points(axes, rq, np.zeros((len(o.row), 3))))
+        origin_px = geometry.project(_chain(axes).transforms(rq).t)   # the sample origin's path
         dist = np.hypot(*(o.xy - origin_px).T)
         ref = int(np.argmin([np.median(dist[local == s]) for s in range(len(ids))]))
         base = len(labels)
