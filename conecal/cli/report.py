@@ -29,6 +29,10 @@ def _truth_comparison(console, doc) -> None:
         truth = read_json(truth_path, "conecal-truth")
     except InputError:
         return
+    if truth.get("misalignment") and doc.get("misalignment"):
+        console.print("  vs truth: " + ", ".join(
+            f"{n} {doc['misalignment'][n]['value'] - v:+.4f}" for n, v in truth["misalignment"].items()
+            if n in doc["misalignment"]))
     g, t = ConeGeometry.from_dict(doc), ConeGeometry.from_dict(truth["geometry"])
     ang = np.degrees(np.arccos(np.clip(np.dot(g.normal, t.normal), -1, 1)))
     axis = truth.get("rotary_axis")
@@ -121,6 +125,18 @@ def command(results):
                           "∞" if sig is None or sig == float("inf") else f"{sig:.2g}", note)
         console.print(table)
         rms = fit.get("rms_px")
+        if doc.get("stage") == "rp-grid":
+            pl = fit.get("planes", {})
+            console.print(f"  redundant-plane cost {fit.get('cost_nominal', float('nan')):.4g} (nominal) -> "
+                          f"{fit.get('cost_final', float('nan')):.4g} over {pl.get('used')} planes of {pl.get('pairs')} "
+                          f"view pairs; dropped: {pl.get('truncated')} truncated, {pl.get('holder')} through a holder "
+                          f"(seen in {pl.get('holder_views')} views)")
+            if fit.get("at_search_bound"):
+                console.print(f"  [bold red]warning:[/] on the search bound: {', '.join(fit['at_search_bound'])}")
+            _truth_comparison(console, doc)
+            if fit.get("undetermined"):
+                console.print(f"  [bold red]warning:[/] the data do not determine {', '.join(fit['undetermined'])}")
+            continue
         console.print(f"  reprojection RMS [bold]{rms:.4f} px[/] over {fit.get('n_observations')} markers, "
                       f"reduced χ² {fit.get('chi2_reduced', float('nan')):.2f}, outliers {fit.get('outliers', 0)}, "
                       f"start: {fit.get('start')}")

@@ -36,11 +36,17 @@ def _system_of(scan_dir) -> dict:
 @click.option("--effect", "effects", multiple=True, metavar="NAME[:K=V,...]",
               help=f"Switch on a physical effect (repeatable). Known: {', '.join(sorted(REGISTRY))}.")
 @click.option("--dense-holder", is_flag=True, help="Add a dense object holder (robot, circular).")
+@click.option("--truncation", type=click.Choice(["axial", "transaxial"]), default=None,
+              help="Circular: an object taller (axial) or wider (transaxial) than the detector sees.")
+@click.option("--misalignment", default=None, metavar="random|U,V,ETA,THETA,PHI",
+              help="Circular: detector shift (px) and rotations (deg) about its centre, or 'random' "
+                   "(shifts within 15 px, angles within 3 deg).")
 @click.option("--same-system-as", "same_as", type=click.Path(file_okay=False), default=None,
               help="A simulated scan directory whose true source, detector and nominal set-up to reuse "
                    "(linear and rotation only): two scans of one system.")
 @click.option("--overwrite", is_flag=True, help="Replace OUT if it exists.")
-def command(kind, out, seed, frames, photons, blur_px, values, effects, dense_holder, same_as, overwrite):
+def command(kind, out, seed, frames, photons, blur_px, values, effects, dense_holder, truncation, misalignment,
+            same_as, overwrite):
     """Simulate a scan of KIND (linear | rotation | robot | circular) into OUT.
 
     Writes scan.yaml, log.csv, projections.tif (exact line integrals,
@@ -62,6 +68,20 @@ def command(kind, out, seed, frames, photons, blur_px, values, effects, dense_ho
         if kind not in ("robot", "circular"):
             raise InputError("--dense-holder: only for robot and circular scans")
         kw["dense_holder"] = True
+    if (truncation or misalignment) and kind != "circular":
+        raise InputError("--truncation, --misalignment: only for circular scans")
+    if truncation:
+        kw["truncation"] = truncation
+    if misalignment == "random":
+        kw["random_misalignment"] = True
+    elif misalignment is not None:
+        try:
+            vals = [float(x) for x in misalignment.split(",")]
+        except ValueError:
+            raise InputError(f"--misalignment {misalignment}: expected 'random' or five numbers") from None
+        if len(vals) != 5:
+            raise InputError(f"--misalignment {misalignment}: expected five numbers U,V,ETA,THETA,PHI")
+        kw["shift_px"], kw["rotation_deg"] = tuple(vals[:2]), tuple(vals[2:])
     if same_as is not None:
         if kind not in ("linear", "rotation"):
             raise InputError("--same-system-as: only for linear and rotation scans")

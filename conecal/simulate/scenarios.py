@@ -16,6 +16,7 @@ from ..effects import World
 from ..geometry import ConeGeometry, RigidTransform, axis_angle, rotvec_to_matrix
 from ..geometry.sphere import shadow_centroid, shadow_diameter_px
 from ..kinematics import Chain, DHRobot, LinearAxis, RotaryAxis
+from ..consistency.misalignment import misaligned
 from .render import Cylinder, Ellipsoid, Sphere
 
 KINDS = ("linear", "rotation", "robot", "circular")
@@ -257,27 +258,27 @@ def robot_helix(seed=0, *, rows=640, cols=640, pitch=0.2, sod=250.0, sdd=750.0, 
 
 def circular_scan(seed=0, *, rows=256, cols=256, pitch=0.4, sod=300.0, sdd=600.0, n_frames=360,
                   shift_px=(6.0, -4.0), rotation_deg=(1.0, 1.5, -1.0), dense_holder=False,
-                  random_misalignment=False) -> Scenario:
+                  random_misalignment=False, truncation: str | None = None) -> Scenario:
     """A circular scan of an ellipsoid phantom with a misaligned detector.
 
     Misalignment relative to the nominal geometry: detector shift along u
     and v (px), in-plane rotation ``eta`` about the detector normal, and
     tilts ``theta`` about u and ``phi`` about v (deg), all about the
-    detector centre. ``rotation_deg = (eta, theta, phi)``.
+    detector centre. ``rotation_deg = (eta, theta, phi)`` (see
+    :mod:`conecal.consistency.misalignment`). ``truncation``: ``"axial"``
+    makes the object taller than the detector sees, ``"transaxial"`` wider.
     """
     rng = np.random.default_rng(seed)
     nominal = ConeGeometry.nominal(sod=sod, sdd=sdd, shape=(rows, cols), pixel_pitch=(pitch, pitch))
     if random_misalignment:
         shift_px = tuple(rng.uniform(-15, 15, 2))
         rotation_deg = tuple(rng.uniform(-3, 3, 3))
-    eta, th, phi = np.deg2rad(rotation_deg)
-    R = axis_angle(nominal.normal, eta) @ axis_angle(nominal.u, th) @ axis_angle(nominal.v, phi)
-    u, v = R @ nominal.u, R @ nominal.v
-    centre = nominal.detector_centre + shift_px[0] * pitch * nominal.u + shift_px[1] * pitch * nominal.v
-    origin = centre - (cols - 1) / 2 * pitch * u - (rows - 1) / 2 * pitch * v
-    truth_geom = nominal.replace(detector_origin=origin, u=u, v=v)
+    truth_geom = misaligned(nominal, (*shift_px, *rotation_deg))
     fov = 0.45 * min(rows, cols) * pitch * sod / sdd
-    solids = [Ellipsoid(np.zeros(3), np.array([0.8, 0.9, 0.75]) * fov, np.eye(3), 0.02)]
+    body = {None: [0.8, 0.9, 0.75], "axial": [0.8, 1.6, 0.75], "transaxial": [1.25, 0.9, 1.15]}
+    if truncation not in body:
+        raise ValueError(f"truncation must be axial or transaxial, not {truncation!r}")
+    solids = [Ellipsoid(np.zeros(3), np.array(body[truncation]) * fov, np.eye(3), 0.02)]
     for _ in range(10):
         c = rng.uniform(-0.45, 0.45, 3) * fov
         ax = rng.uniform(0.05, 0.25, 3) * fov
@@ -293,6 +294,7 @@ def circular_scan(seed=0, *, rows=256, cols=256, pitch=0.4, sod=300.0, sdd=600.0
     cfg = _config("circular", rows, cols, pitch, sod, sdd, None, axes=axes)
     sc = Scenario("circular", cfg, times, theta[:, None], world, truth_geom, np.zeros(0, int), np.zeros((0, 3)),
                   np.zeros(0), np.zeros(0), sample_solids=solids, photons=1e5, blur_px=0.3, supersample=2)
+    sc.truth_extra["truncation"] = truncation
     sc.truth_extra["misalignment"] = {"shift_u_px": float(shift_px[0]), "shift_v_px": float(shift_px[1]),
                                       "eta_deg": float(rotation_deg[0]), "theta_deg": float(rotation_deg[1]),
                                       "phi_deg": float(rotation_deg[2])}

@@ -1,0 +1,785 @@
+"""Markerless detector misalignment of a circular scan from redundant plane integrals.
+
+Every plane through two source positions of the trajectory is seen by both
+views. By Grangeat's relation, the derivative of the object's plane
+integral along the plane normal is, in each view,
+
+    dRf/drho (m, m.S) = (D^2 + s_pp^2) / D^2 * d/ds R[g_w](alpha, s),
+
+where ``g_w = g D / sqrt(D^2 + u^2 + v^2)`` is the cosine-weighted
+projection, ``R`` its 2D Radon transform on the detector line where the
+plane meets the detector, ``D`` the source-detector distance (along the
+detector normal), ``s_pp`` the line's distance from the principal point and
+``m`` the plane's unit normal (oriented towards the line's side). The two
+views must agree; with a wrong detector geometry they map the plane to the
+wrong lines and disagree. The cost ``c_RP`` is the sum of squared
+disagreements over a fixed sample of planes.
+
+How the work is split:
+
+- each view's table ``d/ds R[g_w](alpha, s)`` is computed once (pixel-driven
+  Radon transform, derivative of a Gaussian along s) with the nominal
+  cosine weights and kept in float32; frames are read one at a time, so
+  memory is the tables, never the stack;
+- planes: random view pairs (at least ``min_separation_deg`` apart), and
+  for each pair a fan of planes through both sources (rotating about the
+  baseline), kept where they pass within the object's bounding sphere;
+  planes whose line leaves either view's detector through a truncated edge
+  (object present at the border: a long object, a wide object or a holder
+  reaching out of the field of view) are dropped, automatically;
+- the five parameters are found by 2D grids over (shift u, eta),
+  (shift v, theta), (theta, phi) and (shift v, theta) again, twice (the
+  second time narrower), then a joint Gauss-Newton refinement with the
+  analytic derivative of the cost; sigma is the largest of the cost's
+  curvature (scaled by the residual level), a leave-views-out jackknife
+  and the spread of disjoint batches of planes.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy.ndimage import correlate1d
+
+from ..errors import FitError, InputError
+from ..geometry import ConeGeometry
+from . import kernels
+from .misalignment import NAMES, UNITS, misaligned
+
+DEFAULT_RANGES = {"shift_u_px": 20.0, "shift_v_px": 20.0, "eta_deg": 3.0, "theta_deg": 3.0, "phi_deg": 3.0}
+
+
+@dataclass(frozen=True)
+class RPOptions:
+    n_angles: int = 360                 # table angles over [0, pi)
+    smooth_px: float = 3.0              # Gaussian sigma of the s-derivative (px): less noise bias
+    pairs: int = 1500                   # random view pairs
+    planes_per_pair: int = 48
+    min_separation_deg: float = 20.0
+    ranges: dict = field(default_factory=lambda: dict(DEFAULT_RANGES))   # grid half-widths
+    grid_steps: dict = field(default_factory=lambda: {"shift_u_px": 1.0, "shift_v_px": 1.0, "eta_deg": 0.25,
+                                                      "theta_deg": 0.5, "phi_deg": 0.5})
+    truncation_level: float = 0.03      # fraction of a view's high percentile marking "object at the border"
+    crop: tuple | None = None           # manual (col0, col1, row0, row1), inclusive, optional
+    exclude_truncated: bool = True
+    exclude_holder: bool = True
+    loss: str = "cauchy"                # planes near an edge the tables interpolate badly are outliers
+    holder_ratio: float = 2.5           # a holder is this many times denser than the object
+    motion_margin_px: float = 3.0       # lines this close to a truncated stretch or holder are dropped too
+    undetermined_sigma: dict = field(default_factory=lambda: {"shift_u_px": 2.0, "shift_v_px": 2.0, "eta_deg": 0.5,
+                                                              "theta_deg": 1.0, "phi_deg": 1.0})
+    seed: int = 0
+
+
+@dataclass
+class ViewTables:
+    """Per-view Radon-derivative tables of one scan."""
+
+    tables: np.ndarray          # (n_views, n_a, n_s) float32
+    s0: float                   # mm
+    ds: float                   # mm
+    ref: tuple                  # pixel coordinates (c, r) of the tables' origin
+    rect: tuple                 # (c0, c1, r0, r1) region used, inclusive pixel indices
+    edge_flags: np.ndarray      # (n_views, perimeter) bool: object at the region's border
+    seconds: float
+    holder_hulls: np.ndarray = None   # (n_views, V, 2) mm from ref; NaN where no holder
+
+    @property
+    def holder_views(self) -> int:
+        return 0 if self.holder_hulls is None else int(np.isfinite(self.holder_hulls[:, 0, 0]).sum())
+
+    @property
+    def n_a(self) -> int:
+        return self.tables.shape[1]
+
+    @property
+    def nbytes(self) -> int:
+        return int(self.tables.nbytes + self.edge_flags.nbytes)
+
+
+def _view_table(img, g_weights: ConeGeometry, ref, rect, angles, s0, ds, n_s, smooth_px):
+    c0, c1, r0, r1 = rect
+    sub = np.ascontiguousarray(img[r0:r1 + 1, c0:c1 + 1], dtype=np.float32)
+    pu, pv = g_weights.pixel_pitch
+    pp = g_weights.principal_point
+    D = abs(float(np.dot(g_weights.detector_origin - g_weights.source, g_weights.normal)))
+    cr, rr = ref[0] - c0, ref[1] - r0
+    weighted = kernels.cosine_weight(sub, pu, pv, cr, rr, (pp[0] - ref[0]) * pu, (pp[1] - ref[1]) * pv, D)
+    radon = kernels.radon_joseph(weighted, pu, pv, cr, rr, np.cos(angles), np.sin(angles), s0, ds, n_s)
+    return correlate1d(radon, _derivative_kernel(smooth_px * min(pu, pv) / ds), axis=1, mode="constant") / ds
+
+
+def _derivative_kernel(sigma_bins: float) -> np.ndarray:
+    """Derivative-of-Gaussian taps normalised to differentiate a straight
+    line exactly (scipy's sampled kernel under-reads narrow ones by ~14 %)."""
+    sigma = max(float(sigma_bins), 0.5)
+    x = np.arange(-int(np.ceil(4 * sigma)), int(np.ceil(4 * sigma)) + 1, dtype=float)
+    w = np.exp(-x**2 / (2 * sigma**2))
+    # correlate1d: out[i] = sum_k taps[k] in[i + k]; d/ds needs taps ~ +x
+    return x * w / np.sum(x**2 * w)
+
+
+def _edge_flags(img, rect, level):
+    """Object present along the region's border: top, bottom (by column),
+    left, right (by row), dilated by a few pixels."""
+    c0, c1, r0, r1 = rect
+    sub = img[r0:r1 + 1, c0:c1 + 1]
+    ref = float(np.percentile(sub, 99.5))
+    band = 2
+    edges = [sub[:band].max(axis=0), sub[-band:].max(axis=0), sub[:, :band].max(axis=1), sub[:, -band:].max(axis=1)]
+    flags = np.concatenate([e > level * ref for e in edges])
+    # a few pixels of margin: a line grazing a flagged stretch is suspect
+    k = 4
+    return np.convolve(flags.astype(float), np.ones(2 * k + 1), mode="same") > 0
+
+
+HULL_VERTICES = 32
+
+
+def _holder_hull(img, rect, ratio: float):
+    """Convex hull (pixel coordinates, region-relative) of a dense holder, or None.
+
+    A holder is a part of the image that touches the region's border and is
+    much denser than everything else: a border-touching connected region of
+    pixels above half the view's high percentile whose median is at least
+    ``ratio`` times the 99th percentile of the rest of the object.
+    """
+    import cv2
+
+    c0, c1, r0, r1 = rect
+    sub = np.asarray(img[r0:r1 + 1, c0:c1 + 1], np.float32)
+    top = float(np.percentile(sub, 99.9))
+    if top <= 0:
+        return None
+    dense = (sub > 0.5 * top).astype(np.uint8)
+    n, labels, stats, _ = cv2.connectedComponentsWithStats(dense, connectivity=8)
+    border = np.zeros(n, bool)
+    for edge in (labels[0], labels[-1], labels[:, 0], labels[:, -1]):
+        border[np.unique(edge)] = True
+    border[0] = False
+    if not border.any():
+        return None
+    holder = np.isin(labels, np.flatnonzero(border))
+    if holder.sum() < 0.002 * holder.size:
+        return None
+    noise = 1.4826 * float(np.median(np.abs(np.diff(sub[:4], axis=1)))) + 1e-12
+    rest = sub[~cv2.dilate(holder.astype(np.uint8), np.ones((7, 7), np.uint8)).astype(bool)]
+    rest = rest[rest > 5 * noise]
+    # nothing else left: the object itself reaches the border (truncation, not a holder)
+    if rest.size < 0.002 * sub.size or np.median(sub[holder]) < ratio * np.percentile(rest, 99):
+        return None
+    pts = cv2.findNonZero(holder.astype(np.uint8))
+    hull = cv2.convexHull(pts)[:, 0, :].astype(float)
+    if len(hull) > HULL_VERTICES:
+        hull = hull[np.linspace(0, len(hull) - 1, HULL_VERTICES).round().astype(int)]
+    return hull
+
+
+def build_tables(images, n_views: int, g_weights: ConeGeometry, opt: RPOptions, progress=None) -> ViewTables:
+    """Tables for ``n_views`` frames yielded one at a time by ``images``."""
+    rows, cols = g_weights.shape
+    rect = tuple(int(x) for x in opt.crop) if opt.crop is not None else (0, cols - 1, 0, rows - 1)
+    c0, c1, r0, r1 = rect
+    if not (0 <= c0 < c1 < cols and 0 <= r0 < r1 < rows):
+        raise InputError(f"crop {rect}: must satisfy 0 <= col0 < col1 < {cols} and 0 <= row0 < row1 < {rows}")
+    pu, pv = g_weights.pixel_pitch
+    ref = ((cols - 1) / 2, (rows - 1) / 2)
+    ds = float(min(pu, pv))
+    half = np.hypot(max(ref[0] - c0, c1 - ref[0]) * pu, max(ref[1] - r0, r1 - ref[1]) * pv) + 4 * ds
+    n_half = int(np.ceil(half / ds))
+    n_s = 2 * n_half + 1
+    s0 = -n_half * ds
+    angles = np.arange(opt.n_angles) * np.pi / opt.n_angles
+    t0 = time.perf_counter()
+    tables = np.empty((n_views, opt.n_angles, n_s), np.float32)
+    flags = np.empty((n_views, 2 * (c1 - c0 + 1) + 2 * (r1 - r0 + 1)), bool)
+    # holder hulls in mm from the tables' origin, padded by repeating the last vertex
+    hulls = np.full((n_views, HULL_VERTICES, 2), np.nan)
+    for k, img in enumerate(images):
+        tables[k] = _view_table(img, g_weights, ref, rect, angles, s0, ds, n_s, opt.smooth_px)
+        flags[k] = _edge_flags(img, rect, opt.truncation_level)
+        if opt.exclude_holder:
+            hull = _holder_hull(img, rect, opt.holder_ratio)
+            if hull is not None:
+                mm = np.column_stack([(hull[:, 0] + c0 - ref[0]) * pu, (hull[:, 1] + r0 - ref[1]) * pv])
+                hulls[k, :len(mm)] = mm
+                hulls[k, len(mm):] = mm[-1]
+        if progress:
+            progress(k + 1, n_views)
+    return ViewTables(tables, s0, ds, ref, rect, flags, time.perf_counter() - t0, hulls)
+
+
+@dataclass
+class _Frame:
+    """Lab-frame detector quantities of one candidate geometry."""
+
+    S: np.ndarray
+    Q: np.ndarray       # lab point of the tables' origin pixel
+    u: np.ndarray
+    v: np.ndarray
+    w: np.ndarray       # unit normal, from the source towards the detector
+    D: float
+    pp: np.ndarray      # principal point, mm from the tables' origin along (u, v)
+
+
+def _frame(g: ConeGeometry, ref) -> _Frame:
+    Q = g.detector_point(*ref)
+    w = g.normal
+    D = float(np.dot(Q - g.source, w))
+    if D < 0:
+        w, D = -w, -D
+    foot = g.source + D * w
+    return _Frame(g.source, Q, g.u, g.v, w, D, np.array([np.dot(foot - Q, g.u), np.dot(foot - Q, g.v)]))
+
+
+class RPProblem:
+    """The redundant-plane cost of one scan as a function of the five parameters."""
+
+    def __init__(self, nominal: ConeGeometry, transforms, tables: ViewTables, axis_direction, opt: RPOptions):
+        self.nominal = nominal
+        self.tab = tables
+        self.opt = opt
+        self.R = np.asarray(transforms.R, float)          # sample -> lab rotations per view
+        Tinv = transforms.inverse()
+        self.sources = Tinv.apply(np.broadcast_to(nominal.source, (len(self.R), 3)))   # sample frame
+        self.axis = np.asarray(axis_direction, float) / np.linalg.norm(axis_direction)
+        self._candidates()
+        self.keep = np.ones(len(self.vi), bool)
+        self._p_sel = np.zeros(5)
+        self._kept = self._arrays(np.arange(len(self.vi)), self._p_sel)
+
+    # -- the plane sample ------------------------------------------------------------------------------
+
+    def _candidates(self):
+        opt, g = self.opt, self.nominal
+        rng = np.random.default_rng(opt.seed)
+        n = len(self.R)
+        rows, cols = g.shape
+        sod = float(np.linalg.norm(g.source))
+        # radius of the ball every view sees: the object's planes live inside it
+        mag = g.sdd / max(sod, 1e-9)
+        r_obj = np.hypot(cols * g.pixel_pitch[0], rows * g.pixel_pitch[1]) / 2 / mag
+        self.r_obj = r_obj
+        S = self.sources
+        i = rng.integers(0, n, 8 * opt.pairs)
+        j = rng.integers(0, n, 8 * opt.pairs)
+        base = S[j] - S[i]
+        dist = np.linalg.norm(base, axis=1)
+        sep = 2 * np.degrees(np.arcsin(np.clip(dist / (2 * sod), 0, 1)))
+        ok = sep >= opt.min_separation_deg
+        pairs = np.unique(np.stack([np.minimum(i, j)[ok], np.maximum(i, j)[ok]], axis=1), axis=0)
+        pairs = pairs[rng.permutation(len(pairs))[:opt.pairs]]
+        if len(pairs) == 0:
+            raise InputError("rp-grid: no pair of views is far enough apart (is this a circular scan?)")
+        i, j = pairs[:, 0], pairs[:, 1]
+        b = S[j] - S[i]
+        b /= np.linalg.norm(b, axis=1, keepdims=True)
+        e1 = self.axis - (b @ self.axis)[:, None] * b
+        e1 /= np.linalg.norm(e1, axis=1, keepdims=True)
+        e2 = np.cross(b, e1)
+        kappa = np.linspace(0, np.pi, 360, endpoint=False)
+        normals = np.cos(kappa)[None, :, None] * e1[:, None] + np.sin(kappa)[None, :, None] * e2[:, None]
+        rho = np.einsum("pkc,pc->pk", normals, S[i])
+        vi, vj, ns = [], [], []
+        K = opt.planes_per_pair
+        for p in range(len(pairs)):
+            good = np.flatnonzero(np.abs(rho[p]) < r_obj)
+            if good.size == 0:
+                continue
+            take = good[np.linspace(0, good.size - 1, min(K, good.size)).round().astype(int)]
+            take = np.unique(take)
+            vi.append(np.full(take.size, i[p]))
+            vj.append(np.full(take.size, j[p]))
+            ns.append(normals[p, take])
+        self.vi = np.concatenate(vi)
+        self.vj = np.concatenate(vj)
+        self.normals = np.concatenate(ns)
+        self.n_pairs = len(pairs)
+        # lab-frame normals per view are fixed: only the detector moves
+        self.mi = np.einsum("pab,pb->pa", self.R[self.vi], self.normals)
+        self.mj = np.einsum("pab,pb->pa", self.R[self.vj], self.normals)
+
+    def _lines(self, f: _Frame, m):
+        a = m @ f.u
+        b = m @ f.v
+        c = m @ (f.Q - f.S)
+        h = np.hypot(a, b)
+        return a, b, c, h, np.arctan2(b, a), -c / h
+
+    def select(self, p) -> dict:
+        """Keep the planes whose lines cross the region in both views and
+        leave it through untruncated border stretches (at geometry ``p``)."""
+        f = _frame(misaligned(self.nominal, p), self.tab.ref)
+        keep = np.ones(len(self.vi), bool)
+        truncated = np.zeros(len(self.vi), bool)
+        # the derivative along s mixes lines up to 4 sigma away: they must be whole too
+        # and as the search moves the geometry, lines move by a few pixels
+        margin = (4 * self.opt.smooth_px + 1 + self.opt.motion_margin_px) * self.tab.ds
+        holder = np.zeros(len(self.vi), bool)
+        for views, m in ((self.vi, self.mi), (self.vj, self.mj)):
+            *_, alpha, s = self._lines(f, m)
+            inside, trunc = self._exits(views, alpha, s)
+            keep &= inside
+            truncated |= trunc
+            # sampled finely enough that a line sweeping past a flagged stretch hits it
+            for off in np.linspace(-margin, margin, 2 * int(np.ceil(margin / self.tab.ds)) + 1):
+                truncated |= self._exits(views, alpha, s + off)[1]
+            holder |= self._near_holder(views, alpha, s, margin)
+        if self.opt.exclude_truncated:
+            keep &= ~truncated
+        if self.opt.exclude_holder:
+            keep &= ~holder
+        self.keep = keep
+        self._p_sel = np.array(p, float)
+        self._kept = self._arrays(np.flatnonzero(keep), self._p_sel)
+        if keep.sum() < 50:
+            raise FitError(f"rp-grid: only {int(keep.sum())} usable planes after excluding truncated ones "
+                           f"(of {len(keep)}); the object fills the field of view everywhere")
+        self.last_selection = {"candidates": int(len(keep)), "used": int(keep.sum()),
+                               "truncated": int(truncated.sum()), "holder": int(holder.sum()),
+                               "holder_views": self.tab.holder_views}
+        return self.last_selection
+
+    def _near_holder(self, views, alpha, s, margin):
+        """Whether each line passes within ``margin`` (mm) of its view's holder hull."""
+        hulls = self.tab.holder_hulls
+        if hulls is None:
+            return np.zeros(len(s), bool)
+        H = hulls[views]                                   # (n, V, 2)
+        has = np.isfinite(H[:, 0, 0])
+        if not has.any():
+            return np.zeros(len(s), bool)
+        d = H[has, :, 0] * np.cos(alpha[has])[:, None] + H[has, :, 1] * np.sin(alpha[has])[:, None] - s[has, None]
+        out = np.zeros(len(s), bool)
+        out[has] = (d.min(axis=1) < margin) & (d.max(axis=1) > -margin)
+        return out
+
+    def _exits(self, views, alpha, s):
+        """Whether each line crosses the region, and whether it leaves through a flagged border stretch."""
+        tab = self.tab
+        c0, c1, r0, r1 = tab.rect
+        pu, pv = self.nominal.pixel_pitch
+        ca, sa = np.cos(alpha), np.sin(alpha)
+        # the region's border in mm from the tables' origin
+        ul, uh = (c0 - 0.5 - tab.ref[0]) * pu, (c1 + 0.5 - tab.ref[0]) * pu
+        vl, vh = (r0 - 0.5 - tab.ref[1]) * pv, (r1 + 0.5 - tab.ref[1]) * pv
+        ncol, nrow = c1 - c0 + 1, r1 - r0 + 1
+        flags = tab.edge_flags[views]
+        hits = np.zeros(len(s), int)
+        trunc = np.zeros(len(s), bool)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            # top (v = vl) and bottom (v = vh) edges: solve for u
+            for vv, off in ((vl, 0), (vh, ncol)):
+                uu = (s - vv * sa) / ca
+                on = np.isfinite(uu) & (uu >= ul) & (uu <= uh)
+                idx = np.clip(np.floor(np.nan_to_num((uu - ul) / pu)).astype(int), 0, ncol - 1)
+                hits += on
+                trunc |= on & flags[np.arange(len(s)), off + idx]
+            for uu, off in ((ul, 2 * ncol), (uh, 2 * ncol + nrow)):
+                vv = (s - uu * ca) / sa
+                on = np.isfinite(vv) & (vv >= vl) & (vv <= vh)
+                idx = np.clip(np.floor(np.nan_to_num((vv - vl) / pv)).astype(int), 0, nrow - 1)
+                hits += on
+                trunc |= on & flags[np.arange(len(s)), off + idx]
+        return hits >= 2, trunc
+
+    # -- cost, residuals, Jacobian ------------------------------------------------------------------
+
+    def _values(self, f: _Frame, views, m, want_jac=False, dframes=None):
+        a, b, c, h, alpha, s = self._lines(f, m)
+        T, T_a, T_s = kernels.lookup(self.tab.tables, views, alpha, s, self.tab.s0, self.tab.ds)
+        ca, sa = a / h, b / h
+        spp = s - (f.pp[0] * ca + f.pp[1] * sa)
+        F = 1.0 + spp**2 / f.D**2
+        val = F * T
+        if not want_jac:
+            return val
+        J = np.empty((len(val), len(dframes)))
+        for k, df in enumerate(dframes):
+            da = m @ df.u
+            db = m @ df.v
+            dc = m @ df.Q
+            dh = (a * da + b * db) / h
+            dalpha = (a * db - b * da) / h**2
+            dsl = -dc / h + c * dh / h**2
+            dspp = dsl - (df.pp[0] * ca + df.pp[1] * sa) - (-f.pp[0] * sa + f.pp[1] * ca) * dalpha
+            dF = 2 * spp * dspp / f.D**2 - 2 * spp**2 * df.D / f.D**3
+            J[:, k] = dF * T + F * (T_a * dalpha + T_s * dsl)
+        return val, J
+
+    def _dframes(self, p, f: _Frame, step=1e-6):
+        """Derivatives of the lab detector quantities along each parameter."""
+        out = []
+        for k in range(5):
+            q = np.array(p, float)
+            q[k] += step
+            fq = _frame(misaligned(self.nominal, q), self.tab.ref)
+            out.append(_Frame(0, (fq.Q - f.Q) / step, (fq.u - f.u) / step, (fq.v - f.v) / step, 0,
+                              (fq.D - f.D) / step, (fq.pp - f.pp) / step))
+        return out
+
+    def _arrays(self, idx, p):
+        """Look-up order and weights for the planes ``idx``.
+
+        Residuals run in order of (view, angle) of their first view, and the
+        second view's look-ups are made in their own (view, angle) order and
+        put back: the tables are large, and walking them in order is several
+        times faster than at random. Each plane is weighted by
+        1 / (c + mean |value|) (values at ``p``; c their median): the
+        interpolation error of a plane grows with its value, and a dense
+        holder's planes would otherwise outweigh the object's."""
+        f = _frame(misaligned(self.nominal, p), self.tab.ref)
+        key_i = self.vi[idx] * 4.0 * self.tab.n_a + (self._lines(f, self.mi[idx])[4] % (2 * np.pi))
+        idx = idx[np.argsort(key_i, kind="stable")]
+        key_j = self.vj[idx] * 4.0 * self.tab.n_a + (self._lines(f, self.mj[idx])[4] % (2 * np.pi))
+        perm = np.argsort(key_j, kind="stable")
+        arrays = (self.vi[idx], self.mi[idx], self.vj[idx][perm], self.mj[idx][perm], perm, 1.0)
+        vi, mi, vj, mj, _, _ = arrays
+        size = np.abs(self._values(f, vi, mi))
+        size[perm] += np.abs(self._values(f, vj, mj))
+        size *= 0.5
+        weight = 1.0 / (np.median(size) + size) if size.size else 1.0
+        return arrays[:5] + (weight,)
+
+    def _residuals(self, p, arrays) -> np.ndarray:
+        vi, mi, vj, mj, perm, weight = arrays
+        f = _frame(misaligned(self.nominal, p), self.tab.ref)
+        out = self._values(f, vi, mi)
+        out[perm] -= self._values(f, vj, mj)
+        return out * weight
+
+    def residuals(self, p, arrays=None) -> np.ndarray:
+        return self._residuals(p, self._kept if arrays is None else arrays)
+
+    def jacobian(self, p, arrays=None) -> np.ndarray:
+        vi, mi, vj, mj, perm, weight = self._kept if arrays is None else arrays
+        f = _frame(misaligned(self.nominal, p), self.tab.ref)
+        dfs = self._dframes(p, f)
+        _, J = self._values(f, vi, mi, True, dfs)
+        _, Jj = self._values(f, vj, mj, True, dfs)
+        J[perm] -= Jj
+        return J * np.reshape(weight, (-1, 1))
+
+    def subset(self, n: int, seed: int = 0):
+        """Look-up arrays of ``n`` of the kept planes at random (for the grids)."""
+        kept = np.flatnonzero(self.keep)
+        rng = np.random.default_rng(seed)
+        return self._arrays(np.sort(rng.choice(kept, size=min(n, kept.size), replace=False)), self._p_sel)
+
+    def residuals_subset(self, p, arrays) -> np.ndarray:
+        return self._residuals(p, arrays)
+
+    def cost(self, p) -> float:
+        r = self.residuals(p)
+        return float(np.sum(r * r))
+
+
+# -- the search ------------------------------------------------------------------------------------
+
+# v, theta and phi are correlated (a wrong phi is partly taken up by theta,
+# and theta by v), so each correlated pair shares a grid, and (v, theta)
+# is looked at again after (theta, phi)
+STAGES = (("shift_u_px", "eta_deg"), ("shift_v_px", "theta_deg"), ("theta_deg", "phi_deg"), ("shift_v_px", "theta_deg"))
+
+
+@dataclass
+class RPResult:
+    x: np.ndarray
+    fit: object                  # core.FitResult of the refinement
+    grid_best: np.ndarray
+    evaluations: int
+    planes: dict
+    slices: dict
+    sigma_curvature: np.ndarray  # from the cost's curvature, scaled by the residual level
+    sigma_jackknife: np.ndarray  # from leaving out blocks of views
+    sigma: np.ndarray            # the larger of the two: what is reported
+    cost_nominal: float
+    cost_final: float
+    seconds: dict
+    pass1: np.ndarray = None     # estimate after the first pass (nominal cosine weights)
+    at_bound: list = field(default_factory=list)
+
+
+def _grid(prob: RPProblem, p, names, centre_range, steps, subset):
+    """Best point of a grid over ``names`` (others held at ``p``)."""
+    idx = [NAMES.index(n) for n in names]
+    axes = [c + np.arange(-np.floor(w / steps[n] + 1e-9), np.floor(w / steps[n] + 1e-9) + 1) * steps[n]
+            for n, (c, w) in zip(names, centre_range)]
+    best, best_q = np.inf, None
+    n = 0
+    for combo in np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, len(idx)):
+        q = np.array(p, float)
+        q[idx] = combo
+        r = prob.residuals_subset(q, subset)
+        c = float(np.sum(r * r))   # not r @ r: BLAS threads left spinning slow the numba look-ups 10x
+        n += 1
+        if c < best:
+            best, best_q = c, q
+    return best_q, n
+
+
+def grid_search(prob: RPProblem, opt: RPOptions, progress=None) -> tuple[np.ndarray, int]:
+    """Grids over STAGES in turn, twice (the second pass narrower, around
+    the first's answer), on a quarter of the planes: they only need the basin."""
+    prob.select(np.zeros(5))
+    subset = prob.subset(max(2000, int(prob.keep.sum()) // 4), opt.seed + 1)
+    p = np.zeros(5)
+    evals = 0
+    for pass_ in range(2):
+        for k, names in enumerate(STAGES):
+            if pass_ == 0:
+                cr = [(0.0, opt.ranges[n]) for n in names]
+            else:
+                cr = [(p[NAMES.index(n)], 6 * opt.grid_steps[n]) for n in names]
+            p, n = _grid(prob, p, names, cr, opt.grid_steps, subset)
+            evals += n
+            if progress:
+                progress(pass_ * len(STAGES) + k + 1, 2 * len(STAGES))
+    return p, evals
+
+
+def refine(prob: RPProblem, opt: RPOptions, p):
+    """Joint Gauss-Newton refinement from ``p`` (planes chosen again at the
+    start and once more at the answer, as truncated lines move with the
+    geometry). Returns the core's FitResult and the residual scale used."""
+    from ..fit.core import Parameter, solve
+
+    prob.select(p)
+    r = prob.residuals(p)
+    scale = 1.4826 * float(np.median(np.abs(r - np.median(r)))) or 1.0
+    fit = None
+    for _ in range(2):
+        params = [Parameter(n, float(p[k]), lower=-1.5 * opt.ranges[n], upper=1.5 * opt.ranges[n], unit=u,
+                            scale=opt.grid_steps[n], undetermined_sigma=opt.undetermined_sigma[n])
+                  for k, (n, u) in enumerate(zip(NAMES, UNITS))]
+        fit = solve(params, lambda x: prob.residuals(x) / scale, lambda x: prob.jacobian(x) / scale,
+                    scale_covariance=True, max_nfev=50, tol=1e-10, loss=opt.loss, f_scale=3.0)
+        p = fit.x
+        prob.select(p)
+    return fit, scale
+
+
+def finish(prob: RPProblem, opt: RPOptions, fit, scale, grid_best, evals, seconds) -> RPResult:
+    x = fit.x
+    jack = jackknife_sigma(prob, x, scale)
+    batch, spread = batch_sigma(prob, opt, x, scale)
+    sigma = np.fmax(np.fmax(np.array(fit.sigma), jack), batch)
+    res = RPResult(x=x, fit=fit, grid_best=grid_best, evaluations=evals + fit.nfev, planes=dict(prob.last_selection),
+                   slices=cost_slices(prob, x, opt), sigma_curvature=np.array(fit.sigma), sigma_jackknife=jack,
+                   sigma=sigma, cost_nominal=prob.cost(np.zeros(5)), cost_final=prob.cost(x), seconds=seconds)
+    res.sigma_batches = batch
+    res.batch_estimates = spread
+    # A parameter on its search bound was not found, whatever its curvature
+    # says; nor are those strongly correlated with it.
+    at_bound = [k for k, n in enumerate(NAMES) if abs(x[k]) >= 1.5 * opt.ranges[n] * 0.999]
+    corr = np.nan_to_num(np.asarray(fit.correlation, float))
+    lost = set(at_bound)
+    for k in at_bound:
+        lost.update(int(j) for j in np.flatnonzero(np.abs(corr[k]) > 0.7))
+    res.at_bound = [NAMES[k] for k in at_bound]
+    for k in lost:
+        res.sigma[k] = np.inf
+    return res
+
+
+def batch_sigma(prob: RPProblem, opt: RPOptions, x, scale: float, batches: int = 5):
+    """Sigma from disjoint batches of view pairs, each refined on its own.
+
+    Interpolation errors of the tables at strong edges are systematic
+    within a plane but differ between planes, and can make the cost of a
+    weak parameter (a tilt) lumpy; neither the curvature nor leaving out
+    views sees that. The batch estimates' spread, divided by
+    sqrt(batches - 1) for the mean of ``batches`` batches, does.
+    Returns (sigma, the batch estimates).
+    """
+    from ..fit.core import Parameter, solve
+
+    kept = np.flatnonzero(prob.keep)
+    pair_id = prob.vi[kept] * len(prob.R) + prob.vj[kept]
+    _, inverse = np.unique(pair_id, return_inverse=True)
+    rng = np.random.default_rng(opt.seed + 7)
+    group = rng.permutation(inverse.max() + 1)[inverse] % batches
+    estimates = []
+    for b in range(batches):
+        arrays = prob._arrays(kept[group == b], x)
+        if len(arrays[0]) < 100:
+            continue
+        params = [Parameter(n, float(x[k]), lower=-1.5 * opt.ranges[n], upper=1.5 * opt.ranges[n], unit=u,
+                            scale=opt.grid_steps[n]) for k, (n, u) in enumerate(zip(NAMES, UNITS))]
+        f = solve(params, lambda q: prob.residuals(q, arrays) / scale, lambda q: prob.jacobian(q, arrays) / scale,
+                  max_nfev=15, tol=1e-8, loss=opt.loss, f_scale=3.0)
+        estimates.append(f.x)
+    if len(estimates) < 3:
+        return np.full(5, np.nan), np.zeros((0, 5))
+    est = np.array(estimates)
+    return est.std(axis=0, ddof=1) / np.sqrt(len(est)), est
+
+
+def search(prob: RPProblem, opt: RPOptions, progress=None) -> RPResult:
+    """Grids, then a joint refinement, then sigma, on one set of tables."""
+    t0 = time.perf_counter()
+    p, evals = grid_search(prob, opt, progress)
+    t1 = time.perf_counter()
+    fit, scale = refine(prob, opt, p)
+    return finish(prob, opt, fit, scale, p, evals, {"grid": t1 - t0, "refine": time.perf_counter() - t1})
+
+
+def jackknife_sigma(prob: RPProblem, x, scale: float, groups: int = 12) -> np.ndarray:
+    """Sigma from leaving out contiguous blocks of views in turn.
+
+    The residuals of one view share its noise and its interpolation errors,
+    so the curvature, which treats every plane as independent, is
+    optimistic. Each block's estimate is one Gauss-Newton step from ``x``
+    without the planes that touch the block; a block whose planes carry a
+    fraction f of the information moves the estimate with variance
+    var * f / (1 - f).
+    """
+    vi, _, vj, _, perm, _ = prob._kept
+    vj_res = np.empty_like(vj)
+    vj_res[perm] = vj
+    n_views = len(prob.R)
+    block_i = vi * groups // n_views
+    block_j = vj_res * groups // n_views
+    r = prob.residuals(x) / scale
+    J = prob.jacobian(x) / scale
+    devs = []
+    for g in range(groups):
+        keep = (block_i != g) & (block_j != g)
+        f = 1.0 - keep.mean()
+        if f <= 0 or keep.sum() < 10 * J.shape[1]:
+            continue
+        step = np.linalg.lstsq(J[keep], -r[keep], rcond=None)[0]
+        devs.append(step**2 * (1 - f) / f)
+    if not devs:
+        return np.full(5, np.nan)
+    return np.sqrt(np.mean(devs, axis=0))
+
+
+def cost_slices(prob: RPProblem, x, opt: RPOptions, n: int = 41) -> dict:
+    """The cost along each parameter through ``x`` (the others held), over
+    the grid range (the paper's Figures 7 and 8)."""
+    out = {}
+    for k, name in enumerate(NAMES):
+        vals = np.linspace(-opt.ranges[name], opt.ranges[name], n)
+        costs = []
+        for val in vals:
+            q = np.array(x, float)
+            q[k] = val
+            costs.append(prob.cost(q))
+        out[name] = {"values": vals.tolist(), "cost": costs}
+    return out
+
+
+# -- a scan in, a geometry document out ----------------------------------------------------------
+
+def check_scan(scan) -> np.ndarray:
+    """The rotary axis direction of a circular scan; InputError otherwise."""
+    cfg = scan.config
+    if cfg.motion != "circular":
+        raise InputError(f"{scan.root / 'scan.yaml'}: motion: rp-grid needs a circular scan, not {cfg.motion!r}")
+    rotary = [a for a in cfg.axes if a.type == "rotary"]
+    if len(rotary) != 1 or len(cfg.axes) != 1:
+        raise InputError(f"{scan.root / 'scan.yaml'}: axes: a circular scan has exactly one rotary axis")
+    if scan.n_frames < 36:
+        raise InputError(f"{scan.root / cfg.log}: {scan.n_frames} frames; rp-grid needs at least 36 views")
+    return np.asarray(rotary[0].direction, float)
+
+
+def run(scan, opt: RPOptions, progress=None) -> tuple[RPResult, RPProblem]:
+    """rp-grid on a loaded circular scan, in two passes over the stack.
+
+    Pass 1: tables of every other view (at most ~180) with the nominal
+    cosine weights; grids and a first refinement. Pass 2: tables of every
+    view with the cosine weights of pass 1's geometry (a 2 deg tilt moves
+    the principal point by ~20 mm, and the weights' error would mimic a
+    tilt), then the final refinement and sigma. Frames are read one at a
+    time in each pass.
+    """
+    axis = check_scan(scan)
+    nominal = scan.nominal_geometry()
+    frames = [int(k) for k in scan.log.frame]
+    n = len(frames)
+    T_all = scan.nominal_transforms()
+    step = max(1, n // 180)
+    first = np.arange(0, n, step)
+    total = len(first) + n + 20
+
+    def images(idx):
+        for k in idx:
+            yield scan.stack.read(frames[k])
+
+    def prog(offset):
+        def cb(done, of):
+            if progress:
+                progress(offset + done, total)
+        return cb
+
+    t0 = time.perf_counter()
+    tab1 = build_tables(images(first), len(first), nominal, opt, progress=prog(0))
+    prob1 = RPProblem(nominal, T_all[first], tab1, axis, opt)
+    t1 = time.perf_counter()
+    p_grid, evals = grid_search(prob1, opt, progress=lambda d, o: progress and progress(len(first) + round(10 * d / o), total))
+    fit1, _ = refine(prob1, opt, p_grid)
+    del prob1, tab1
+    t2 = time.perf_counter()
+    tab2 = build_tables(images(range(n)), n, misaligned(nominal, fit1.x), opt, progress=prog(len(first) + 10))
+    prob = RPProblem(nominal, T_all, tab2, axis, opt)
+    t3 = time.perf_counter()
+    fit, scale = refine(prob, opt, fit1.x)
+    res = finish(prob, opt, fit, scale, p_grid, evals + fit1.nfev,
+                 {"tables_pass1": t1 - t0, "search_pass1": t2 - t1, "tables_pass2": t3 - t2})
+    res.seconds["refine_pass2"] = time.perf_counter() - t3
+    res.seconds["total"] = time.perf_counter() - t0
+    res.pass1 = fit1.x
+    if progress:
+        progress(total, total)
+    return res, prob
+
+
+def document(res: RPResult, prob: RPProblem, scan, opt: RPOptions) -> dict:
+    """The ``conecal-geometry/1`` document of an rp-grid run."""
+    from ..fit.output import GEOMETRY_FORMAT
+    from .. import __version__
+    from ..jsonio import rounded
+
+    g = misaligned(prob.nominal, res.x)
+    undetermined = [n for n, s in zip(NAMES, res.sigma) if not np.isfinite(s) or s > opt.undetermined_sigma[n]]
+    params = {}
+    for k, (n, u) in enumerate(zip(NAMES, UNITS)):
+        params[n] = {"index": k, "initial": 0.0, "free": True, "value": float(res.x[k]),
+                     "sigma": float(res.sigma[k]) if np.isfinite(res.sigma[k]) else None, "unit": u,
+                     "sigma_curvature": float(res.sigma_curvature[k]), "sigma_jackknife": float(res.sigma_jackknife[k]),
+                     "grid": float(res.grid_best[k]), "determined": n not in undetermined}
+    axes = [{"name": a.name, "type": a.type, "direction": list(a.direction),
+             "point": list(a.point) if a.point is not None else [0.0, 0.0, 0.0]} for a in scan.config.axes]
+    free = list(NAMES)
+    corr = res.fit.correlation
+    doc = {
+        "format": GEOMETRY_FORMAT, "software": f"conecal {__version__}", "stage": "rp-grid", "scan": str(scan.root),
+        **g.to_dict(), "axes": axes,
+        "misalignment": params,
+        "fit": {
+            "method": "redundant plane integrals (Grangeat), grids then Gauss-Newton",
+            "parameters": params,
+            "correlation": {"names": free, "matrix": np.where(np.isfinite(corr), corr, 0.0)},
+            "undetermined": undetermined,
+            "at_search_bound": list(res.at_bound),
+            "cost_nominal": res.cost_nominal, "cost_final": res.cost_final,
+            "cost_reduction": res.cost_nominal / res.cost_final if res.cost_final > 0 else None,
+            "chi2_reduced": res.fit.reduced_chi2,
+            "planes": {**res.planes, "pairs": prob.n_pairs, "planes_per_pair": opt.planes_per_pair,
+                       "min_separation_deg": opt.min_separation_deg},
+            "tables": {"views": int(prob.tab.tables.shape[0]), "angles": opt.n_angles,
+                       "offsets": int(prob.tab.tables.shape[2]), "ds_mm": prob.tab.ds, "smooth_px": opt.smooth_px,
+                       "region": list(prob.tab.rect), "megabytes": prob.tab.nbytes / 1e6},
+            "ranges": dict(opt.ranges), "grid_steps": dict(opt.grid_steps),
+            "evaluations": res.evaluations,
+            "seconds": res.seconds,
+            "converged": bool(res.fit.success),
+        },
+        "cost_slices": res.slices,
+        "units": {"length": "mm", "angle": "deg", "shift": "px of the nominal detector"},
+    }
+    return rounded(doc)

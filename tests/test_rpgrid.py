@@ -1,0 +1,144 @@
+"""rp-grid: Grangeat's relation, table look-ups, Jacobian, holder detection,
+a small simulate -> rp-grid -> recover run, and the CLI's bad-input paths."""
+
+import json
+
+import numpy as np
+import pytest
+from click.testing import CliRunner
+
+from conecal.cli.main import cli
+from conecal.consistency import kernels, rpgrid
+from conecal.consistency.misalignment import NAMES, misaligned
+from conecal.geometry import ConeGeometry
+
+
+def gaussian_projection(g, c, sig, amp):
+    """Exact cone-beam projection of A exp(-|x-c|^2 / 2 sig^2)."""
+    rows, cols = g.shape
+    P = g.detector_point(*np.meshgrid(np.arange(cols), np.arange(rows)))
+    d = P - g.source
+    d /= np.linalg.norm(d, axis=-1, keepdims=True)
+    x = c - g.source
+    dist2 = (x**2).sum() - (d @ x) ** 2
+    return amp * np.sqrt(2 * np.pi) * sig * np.exp(-dist2 / (2 * sig**2))
+
+
+def test_grangeat_relation_on_a_tilted_detector():
+    """Table value times Grangeat's factor equals d/drho of the 3D Gaussian's plane integral."""
+    nom = ConeGeometry.nominal(sod=300, sdd=600, shape=(200, 240), pixel_pitch=(0.4, 0.4))
+    g = misaligned(nom, (5, -3, 2, 3, -2))
+    c, sig, amp = np.array([3.0, -2.0, 4.0]), 6.0, 0.02
+    img = gaussian_projection(g, c, sig, amp)
+    opt = rpgrid.RPOptions(smooth_px=0.5)
+    tab = rpgrid.build_tables([img], 1, g, opt)
+    prob = object.__new__(rpgrid.RPProblem)
+    prob.tab = tab
+    rng = np.random.default_rng(1)
+    pts = c + rng.normal(0, sig, (200, 3))
+    m = np.cross(pts - g.source, rng.normal(size=(200, 3)))
+    m /= np.linalg.norm(m, axis=1, keepdims=True)
+    val = prob._values(rpgrid._frame(g, tab.ref), np.zeros(200, np.int64), m)
+    t = m @ g.source - m @ c
+    ref = amp * 2 * np.pi * sig**2 * (-t / sig**2) * np.exp(-t**2 / (2 * sig**2))
+    assert np.abs(val - ref).max() < 0.01 * np.abs(ref).max()
+
+
+def test_lookup_symmetry_and_derivatives():
+    rng = np.random.default_rng(2)
+    tables = rng.normal(size=(2, 36, 41)).astype(np.float32)
+    tables = np.cumsum(np.cumsum(tables, axis=2), axis=1).astype(np.float32)   # smooth-ish
+    s0, ds = -8.0, 0.4
+    view = np.array([1, 1, 1], np.int64)
+    alpha = np.array([0.3, 1.2, 2.9])
+    s = np.array([-3.0, 0.5, 2.2])
+    v, da, dsv = kernels.lookup(tables, view, alpha, s, s0, ds)
+    v2, _, _ = kernels.lookup(tables, view, alpha + np.pi, -s, s0, ds)
+    assert np.allclose(v, -v2, atol=1e-5)
+    h = 1e-5
+    vp, _, _ = kernels.lookup(tables, view, alpha, s + h, s0, ds)
+    vm, _, _ = kernels.lookup(tables, view, alpha, s - h, s0, ds)
+    assert np.allclose(dsv, (vp - vm) / (2 * h), rtol=1e-3, atol=1e-2)
+    vp, _, _ = kernels.lookup(tables, view, alpha + h, s, s0, ds)
+    vm, _, _ = kernels.lookup(tables, view, alpha - h, s, s0, ds)
+    assert np.allclose(da, (vp - vm) / (2 * h), rtol=1e-3, atol=1e-2)
+
+
+def test_joseph_radon_of_a_constant_image():
+    img = np.ones((100, 120), np.float32)
+    ang = np.array([0.0, np.pi / 4, np.pi / 2])
+    out = kernels.radon_joseph(img, 0.4, 0.4, 59.5, 49.5, np.cos(ang), np.sin(ang), -40.0, 0.4, 201)
+    assert np.isclose(out[0, 100], 99 * 0.4, rtol=0.02)        # a column: 100 samples, 99 gaps
+    assert np.isclose(out[2, 100], 119 * 0.4, rtol=0.02)
+    assert np.isclose(out[0].sum() * 0.4, 100 * 120 * 0.16, rtol=0.02)
+
+
+def test_holder_hull_found_only_for_a_dense_border_object():
+    img = np.zeros((120, 120), np.float32)
+    yy, xx = np.mgrid[:120, :120]
+    img[(xx - 60) ** 2 + (yy - 50) ** 2 < 30**2] = 0.4
+    assert rpgrid._holder_hull(img, (0, 119, 0, 119), 2.5) is None
+    holder = img.copy()
+    holder[95:, 45:75] = 2.5
+    hull = rpgrid._holder_hull(holder, (0, 119, 0, 119), 2.5)
+    assert hull is not None and hull[:, 1].min() >= 94 and 44 <= hull[:, 0].min() and hull[:, 0].max() <= 75
+    # an object that is itself cut by the border is not a holder
+    tall = img.copy()
+    tall[:, 40:80] = np.maximum(tall[:, 40:80], 0.4)
+    assert rpgrid._holder_hull(tall, (0, 119, 0, 119), 2.5) is None
+
+
+@pytest.fixture(scope="module")
+def small_circular(tmp_path_factory):
+    from conecal.simulate import circular_scan, write_scan
+
+    sc = circular_scan(7, rows=96, cols=96, pitch=1.0, n_frames=90, shift_px=(3.0, -2.0), rotation_deg=(1.0, 0.0, 0.0))
+    return write_scan(sc, tmp_path_factory.mktemp("circ") / "c", seed=7)
+
+
+def test_jacobian_matches_finite_differences(small_circular):
+    from conecal.scan import load_scan
+
+    scan = load_scan(small_circular)
+    opt = rpgrid.RPOptions(pairs=100, planes_per_pair=16)
+    nom = scan.nominal_geometry()
+    tab = rpgrid.build_tables((scan.stack.read(k) for k in range(scan.n_frames)), scan.n_frames, nom, opt)
+    prob = rpgrid.RPProblem(nom, scan.nominal_transforms(), tab, [0, 1, 0], opt)
+    p = np.array([2.7, -1.6, 0.8, 0.4, -0.3])
+    prob.select(p)
+    J = prob.jacobian(p)
+    for k in range(5):
+        h = 1e-4
+        q1, q2 = p.copy(), p.copy()
+        q1[k] += h
+        q2[k] -= h
+        Jn = (prob.residuals(q1) - prob.residuals(q2)) / (2 * h)
+        # bilinear look-ups: piecewise-smooth, so the match is to a few per cent
+        assert np.linalg.norm(J[:, k] - Jn) < 0.05 * np.linalg.norm(Jn) + 1e-9, NAMES[k]
+
+
+def test_small_scan_recovers_shift_and_rotation(small_circular, tmp_path):
+    out = tmp_path / "rp.json"
+    r = CliRunner().invoke(cli, ["rp-grid", str(small_circular), "-o", str(out), "--pairs", "400",
+                                 "--range", "theta_deg=2", "--range", "phi_deg=2"])
+    assert r.exit_code == 0, r.output
+    doc = json.loads(out.read_text())
+    assert doc["format"] == "conecal-geometry/1" and doc["stage"] == "rp-grid"
+    est = doc["misalignment"]
+    assert abs(est["shift_u_px"]["value"] - 3.0) < 0.2
+    assert abs(est["eta_deg"]["value"] - 1.0) < 0.1
+    assert set(doc["cost_slices"]) == set(NAMES)
+    assert doc["fit"]["cost_final"] < 0.2 * doc["fit"]["cost_nominal"]
+
+
+def test_cli_refuses_bad_input(small_circular, small_linear_scan, tmp_path):
+    run = CliRunner().invoke
+    r = run(cli, ["rp-grid", str(small_linear_scan), "-o", str(tmp_path / "x.json")])
+    assert r.exit_code == 2 and "circular" in r.output
+    r = run(cli, ["rp-grid", str(small_circular), "-o", str(tmp_path / "x.json"), "--range", "bogus=3"])
+    assert r.exit_code == 2 and "unknown parameter" in r.output
+    r = run(cli, ["rp-grid", str(small_circular), "-o", str(tmp_path / "x.json"), "--crop", "1,2,3"])
+    assert r.exit_code == 2
+    r = run(cli, ["rp-grid", str(small_circular), "-o", str(tmp_path / "x.json"), "--crop", "50,10,0,95"])
+    assert r.exit_code == 2 and "crop" in r.output
+    assert not (tmp_path / "x.json").exists()
