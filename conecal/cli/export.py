@@ -14,9 +14,11 @@ from .options import info
 @click.argument("result", type=click.Path(dir_okay=False))
 @click.option("--scan", "scan", type=click.Path(), default=None,
               help="The scan whose log gives each view's readings (for a geometry file).")
-@click.option("--format", "fmt", type=click.Choice(["astra", "matrices"]), required=True,
+@click.option("--format", "fmt", type=click.Choice(["astra", "matrices", "rtk"]), required=True,
               help="astra: cone_vec rows (source, detector centre, u*pu, v*pv); "
-                   "matrices: 3x4 projection matrices to (column, row, 1).")
+                   "matrices: 3x4 projection matrices to (column, row, 1); "
+                   "rtk: RTK geometry XML (needs itk-rtk; projection images with spacing (pu, pv) and origin "
+                   "(-(cols-1)/2*pu, -(rows-1)/2*pv)).")
 @click.option("-o", "--output", required=True, type=click.Path(dir_okay=False),
               help="Output file: .npy for a numpy array, anything else for text (one view per row).")
 def command(result, scan, fmt, output):
@@ -37,6 +39,14 @@ def command(result, scan, fmt, output):
     g, frames, T, warnings = views(result, s)
     geoms = per_view(g, T)
     rows, cols = g.shape
+    if fmt == "rtk":
+        from ..export.rtk import detector_origin_spacing, write_rtk_xml
+
+        write_rtk_xml(output, geoms)
+        (ox, oy), (pu, pv) = detector_origin_spacing(g)
+        info(f"wrote {output}: {len(geoms)} views (RTK XML); give RTK's projections spacing ({pu:g}, {pv:g}) and "
+             f"origin ({ox:g}, {oy:g})" + "".join(f"; {w}" for w in warnings))
+        return
     if fmt == "astra":
         arr = astra_vectors(geoms)
         header = (f"conecal {__version__} export from {result}: ASTRA cone_vec, one view per row "

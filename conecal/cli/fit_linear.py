@@ -40,7 +40,8 @@ def command(scan, markers, output, axis_scales, axis_tilts, loss, marker_id, use
     summary = fit_summary(res, fit.residual_px, start=fit.start, loss=loss)
     axes = [{"name": n, "type": "linear", "direction": d, "scale": float(sc)}
             for n, d, sc in zip(fit.model.axis_names, fit.directions, fit.scales)]
-    residuals = [{"frame": int(f), "id": int(i), "dx": float(d[0]), "dy": float(d[1]), "sigma": float(sg)}
-                 for f, i, d, sg in zip(fit.obs.frame, fit.obs.ids, fit.residual_px, fit.obs.sigma)]
+    residuals = [{"frame": int(f), "id": int(i), "x": float(xy[0]), "y": float(xy[1]), "dx": float(d[0]),
+                  "dy": float(d[1]), "sigma": float(sg)}
+                 for f, i, xy, d, sg in zip(fit.obs.frame, fit.obs.ids, fit.obs.xy, fit.residual_px, fit.obs.sigma)]
     doc = geometry_document("fit-linear", fit.geometry, axes, summary, residuals, str(scan))
     write_fit(output, doc, res, summary, "")

@@ -66,9 +66,10 @@ def command(scans, markers, geometry, output, refine_geometry, loss, use_flagged
         ref = k in fit.model.references
         spheres.append({"scan": str(scans[scan_k]), "id": sid, "position": p, "reference": ref,
                         "sigma": [0.0, 0.0, 0.0] if ref else [sig[f"sphere{k}_{c}"] for c in "xyz"]})
-    residuals = [{"scan": str(scans[k]), "frame": int(f), "id": int(i), "dx": float(d[0]), "dy": float(d[1]),
-                  "sigma": float(sg)}
-                 for k, f, i, d, sg in zip(fit.scan_of_obs, fit.obs.frame, fit.obs.ids, fit.residual_px, fit.obs.sigma)]
+    residuals = [{"scan": str(scans[k]), "frame": int(f), "id": int(i), "x": float(xy[0]), "y": float(xy[1]),
+                  "dx": float(d[0]), "dy": float(d[1]), "sigma": float(sg)}
+                 for k, f, i, xy, d, sg in zip(fit.scan_of_obs, fit.obs.frame, fit.obs.ids, fit.obs.xy, fit.residual_px,
+                                               fit.obs.sigma)]
     doc = geometry_document("fit-rotation", fit.geometry, axes, summary, residuals,
                             str(scans[0]) if len(scans) == 1 else [str(x) for x in scans],
                             extra={"spheres": spheres, "geometry_from": str(geometry) if geometry else "nominal"})

@@ -91,16 +91,24 @@ def _report_poses(console, path, doc) -> None:
 
 @click.command("report")
 @click.argument("results", nargs=-1, required=True, type=click.Path(dir_okay=False))
-def command(results):
+@click.option("-o", "--output", "out_dir", type=click.Path(file_okay=False), default=None,
+              help="Also write a self-contained HTML report, OUT_DIR/index.html (needs matplotlib).")
+@click.option("--reconstruct", is_flag=True,
+              help="HTML: for rp-grid results, FDK slices with the nominal and the corrected geometry (needs itk-rtk).")
+def command(results, out_dir, reconstruct):
     """Summarise fit RESULTS (conecal-geometry/1, conecal-poses/1) on the terminal.
 
     One table per result: each parameter's initial and final value with its
     1-sigma uncertainty, the reprojection RMS, and warnings about
-    parameters the data do not determine.
+    parameters the data do not determine. With -o, the same as an HTML
+    page with figures: residual vectors on the detector, residuals per
+    frame and per marker, the set-up in 3D, rp-grid cost slices, robot
+    placement errors.
 
     \b
     Examples:
       conecal report demo/geometry.json
+      conecal report demo/geometry.json demo/rot.json -o demo/report
     """
     from rich.console import Console
     from rich.table import Table
@@ -148,3 +156,9 @@ def command(results):
             console.print(f"  [bold red]warning:[/] the data do not determine {', '.join(fit['undetermined'])}")
             for combo in fit.get("null_combinations", []):
                 console.print(f"    free combination: {combo}")
+    if out_dir is not None:
+        from ..report import write_report
+        from .options import info
+
+        page = write_report(list(results), out_dir, reconstruct=reconstruct)
+        info(f"wrote {page}")
