@@ -61,13 +61,14 @@ class RPOptions:
     ranges: dict = field(default_factory=lambda: dict(DEFAULT_RANGES))   # grid half-widths
     grid_steps: dict = field(default_factory=lambda: {"shift_u_px": 1.0, "shift_v_px": 1.0, "eta_deg": 0.25,
                                                       "theta_deg": 0.5, "phi_deg": 0.5})
-    truncation_level: float = 0.03      # fraction of a view's high percentile marking "object at the border"
+    truncation_level: float = 0.005     # fraction of a view's high percentile marking "object at the border"
     crop: tuple | None = None           # manual (col0, col1, row0, row1), inclusive, optional
     exclude_truncated: bool = True
     exclude_holder: bool = True
     loss: str = "cauchy"                # planes near an edge the tables interpolate badly are outliers
     holder_ratio: float = 2.5           # a holder is this many times denser than the object
     motion_margin_px: float = 3.0       # lines this close to a truncated stretch or holder are dropped too
+    grid_motion_px: tuple = (15.0, 8.0)  # the same margin during the two grid passes
     undetermined_sigma: dict = field(default_factory=lambda: {"shift_u_px": 2.0, "shift_v_px": 2.0, "eta_deg": 0.5,
                                                               "theta_deg": 1.0, "phi_deg": 1.0})
     seed: int = 0
@@ -127,9 +128,13 @@ def _edge_flags(img, rect, level):
     c0, c1, r0, r1 = rect
     sub = img[r0:r1 + 1, c0:c1 + 1]
     ref = float(np.percentile(sub, 99.5))
-    band = 2
-    edges = [sub[:band].max(axis=0), sub[-band:].max(axis=0), sub[:, :band].max(axis=1), sub[:, -band:].max(axis=1)]
-    flags = np.concatenate([e > level * ref for e in edges])
+    band = 3
+    # mean over a few border pixels, against the noise of that mean: even a
+    # faint cut (the thin tip of an object reaching out) makes lines inconsistent
+    edges = [sub[:band].mean(axis=0), sub[-band:].mean(axis=0), sub[:, :band].mean(axis=1), sub[:, -band:].mean(axis=1)]
+    border = np.concatenate(edges)
+    noise = 1.4826 * float(np.median(np.abs(np.diff(border)))) / np.sqrt(2) + 1e-12
+    flags = border > max(level * ref, 4 * noise)
     # a few pixels of margin: a line grazing a flagged stretch is suspect
     k = 4
     return np.convolve(flags.astype(float), np.ones(2 * k + 1), mode="same") > 0
@@ -308,7 +313,7 @@ class RPProblem:
         h = np.hypot(a, b)
         return a, b, c, h, np.arctan2(b, a), -c / h
 
-    def select(self, p) -> dict:
+    def select(self, p, motion_px: float | None = None) -> dict:
         """Keep the planes whose lines cross the region in both views and
         leave it through untruncated border stretches (at geometry ``p``)."""
         f = _frame(misaligned(self.nominal, p), self.tab.ref)
@@ -316,7 +321,8 @@ class RPProblem:
         truncated = np.zeros(len(self.vi), bool)
         # the derivative along s mixes lines up to 4 sigma away: they must be whole too
         # and as the search moves the geometry, lines move by a few pixels
-        margin = (4 * self.opt.smooth_px + 1 + self.opt.motion_margin_px) * self.tab.ds
+        motion = self.opt.motion_margin_px if motion_px is None else motion_px
+        margin = (4 * self.opt.smooth_px + 1 + motion) * self.tab.ds
         holder = np.zeros(len(self.vi), bool)
         for views, m in ((self.vi, self.mi), (self.vj, self.mj)):
             *_, alpha, s = self._lines(f, m)
@@ -331,6 +337,14 @@ class RPProblem:
             keep &= ~truncated
         if self.opt.exclude_holder:
             keep &= ~holder
+        # planes that miss the object in both views carry only noise (and
+        # noise whose size depends on where the lines fall: a bias)
+        idx = np.flatnonzero(keep)
+        empty = np.zeros(len(keep), bool)
+        if idx.size:
+            size = np.abs(self._values(f, self.vi[idx], self.mi[idx])) + np.abs(self._values(f, self.vj[idx], self.mj[idx]))
+            empty[idx[size < 0.01 * np.percentile(size, 99)]] = True
+            keep &= ~empty
         self.keep = keep
         self._p_sel = np.array(p, float)
         self._kept = self._arrays(np.flatnonzero(keep), self._p_sel)
@@ -339,6 +353,7 @@ class RPProblem:
                            f"(of {len(keep)}); the object fills the field of view everywhere")
         self.last_selection = {"candidates": int(len(keep)), "used": int(keep.sum()),
                                "truncated": int(truncated.sum()), "holder": int(holder.sum()),
+                               "empty": int(empty.sum()),
                                "holder_views": self.tab.holder_views}
         return self.last_selection
 
@@ -387,12 +402,17 @@ class RPProblem:
 
     # -- cost, residuals, Jacobian ------------------------------------------------------------------
 
-    def _values(self, f: _Frame, views, m, want_jac=False, dframes=None):
+    def _values(self, f: _Frame, views, m, want_jac=False, dframes=None, F=None):
+        """Grangeat factor times table value per plane (and d/dparameters).
+        With ``F`` given (frozen at the selection geometry, as the tables'
+        cosine weights are), only the lines' positions depend on the geometry."""
         a, b, c, h, alpha, s = self._lines(f, m)
         T, T_a, T_s = kernels.lookup(self.tab.tables, views, alpha, s, self.tab.s0, self.tab.ds)
         ca, sa = a / h, b / h
         spp = s - (f.pp[0] * ca + f.pp[1] * sa)
-        F = 1.0 + spp**2 / f.D**2
+        frozen = F is not None
+        if not frozen:
+            F = 1.0 + spp**2 / f.D**2
         val = F * T
         if not want_jac:
             return val
@@ -405,7 +425,7 @@ class RPProblem:
             dalpha = (a * db - b * da) / h**2
             dsl = -dc / h + c * dh / h**2
             dspp = dsl - (df.pp[0] * ca + df.pp[1] * sa) - (-f.pp[0] * sa + f.pp[1] * ca) * dalpha
-            dF = 2 * spp * dspp / f.D**2 - 2 * spp**2 * df.D / f.D**3
+            dF = 0.0 if frozen else 2 * spp * dspp / f.D**2 - 2 * spp**2 * df.D / f.D**3
             J[:, k] = dF * T + F * (T_a * dalpha + T_s * dsl)
         return val, J
 
@@ -435,30 +455,53 @@ class RPProblem:
         idx = idx[np.argsort(key_i, kind="stable")]
         key_j = self.vj[idx] * 4.0 * self.tab.n_a + (self._lines(f, self.mj[idx])[4] % (2 * np.pi))
         perm = np.argsort(key_j, kind="stable")
-        arrays = (self.vi[idx], self.mi[idx], self.vj[idx][perm], self.mj[idx][perm], perm, 1.0)
-        vi, mi, vj, mj, _, _ = arrays
-        size = np.abs(self._values(f, vi, mi))
-        size[perm] += np.abs(self._values(f, vj, mj))
+        vi, mi, vj, mj = self.vi[idx], self.mi[idx], self.vj[idx][perm], self.mj[idx][perm]
+        Fi, Fj = self._grangeat(f, mi), self._grangeat(f, mj)
+        size = np.abs(self._values(f, vi, mi, F=Fi))
+        size[perm] += np.abs(self._values(f, vj, mj, F=Fj))
         size *= 0.5
-        weight = 1.0 / (np.median(size) + size) if size.size else 1.0
-        return arrays[:5] + (weight,)
+        # c: a typical signal level, not the median: with truncation most
+        # planes may miss the object, and noise-only planes must not set the scale
+        weight = 1.0 / (np.percentile(size, 75) + size) if size.size else 1.0
+        return (vi, mi, vj, mj, perm, weight, Fi, Fj)
 
-    def _residuals(self, p, arrays) -> np.ndarray:
-        vi, mi, vj, mj, perm, weight = arrays
+    def _grangeat(self, f: _Frame, m):
+        a, b, _, h, _, s = self._lines(f, m)
+        spp = s - (f.pp[0] * a + f.pp[1] * b) / h
+        return 1.0 + spp**2 / f.D**2
+
+    def _residuals(self, p, arrays, energy=False):
+        vi, mi, vj, mj, perm, weight, Fi, Fj = arrays
         f = _frame(misaligned(self.nominal, p), self.tab.ref)
-        out = self._values(f, vi, mi)
-        out[perm] -= self._values(f, vj, mj)
-        return out * weight
+        a = self._values(f, vi, mi, F=Fi)
+        b = self._values(f, vj, mj, F=Fj)
+        out = a.copy()
+        out[perm] -= b
+        out *= weight
+        if not energy:
+            return out
+        bw = np.empty_like(b)
+        bw[perm] = b
+        return out, float(np.sum((a * weight) ** 2 + (bw * weight) ** 2))
+
+    def normalised_cost(self, p, arrays=None) -> float:
+        """c_RP: the squared disagreement over the planes' squared values.
+
+        Normalised, because a geometry that moves every line off the object
+        makes both views read zero and agree perfectly; the grids must not
+        find that."""
+        r, e = self._residuals(p, self._kept if arrays is None else arrays, energy=True)
+        return float(np.sum(r * r)) / e if e > 0 else np.inf
 
     def residuals(self, p, arrays=None) -> np.ndarray:
         return self._residuals(p, self._kept if arrays is None else arrays)
 
     def jacobian(self, p, arrays=None) -> np.ndarray:
-        vi, mi, vj, mj, perm, weight = self._kept if arrays is None else arrays
+        vi, mi, vj, mj, perm, weight, Fi, Fj = self._kept if arrays is None else arrays
         f = _frame(misaligned(self.nominal, p), self.tab.ref)
         dfs = self._dframes(p, f)
-        _, J = self._values(f, vi, mi, True, dfs)
-        _, Jj = self._values(f, vj, mj, True, dfs)
+        _, J = self._values(f, vi, mi, True, dfs, F=Fi)
+        _, Jj = self._values(f, vj, mj, True, dfs, F=Fj)
         J[perm] -= Jj
         return J * np.reshape(weight, (-1, 1))
 
@@ -472,8 +515,7 @@ class RPProblem:
         return self._residuals(p, arrays)
 
     def cost(self, p) -> float:
-        r = self.residuals(p)
-        return float(np.sum(r * r))
+        return self.normalised_cost(p)
 
 
 # -- the search ------------------------------------------------------------------------------------
@@ -499,6 +541,7 @@ class RPResult:
     cost_final: float
     seconds: dict
     pass1: np.ndarray = None     # estimate after the first pass (nominal cosine weights)
+    sigma_slices: np.ndarray = None   # from batches' minima along each whole range
     at_bound: list = field(default_factory=list)
 
 
@@ -512,8 +555,8 @@ def _grid(prob: RPProblem, p, names, centre_range, steps, subset):
     for combo in np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, len(idx)):
         q = np.array(p, float)
         q[idx] = combo
-        r = prob.residuals_subset(q, subset)
-        c = float(np.sum(r * r))   # not r @ r: BLAS threads left spinning slow the numba look-ups 10x
+        # (no BLAS here: its threads, left spinning, slow the numba look-ups tenfold)
+        c = prob.normalised_cost(q, subset)
         n += 1
         if c < best:
             best, best_q = c, q
@@ -523,11 +566,14 @@ def _grid(prob: RPProblem, p, names, centre_range, steps, subset):
 def grid_search(prob: RPProblem, opt: RPOptions, progress=None) -> tuple[np.ndarray, int]:
     """Grids over STAGES in turn, twice (the second pass narrower, around
     the first's answer), on a quarter of the planes: they only need the basin."""
-    prob.select(np.zeros(5))
-    subset = prob.subset(max(2000, int(prob.keep.sum()) // 4), opt.seed + 1)
     p = np.zeros(5)
     evals = 0
     for pass_ in range(2):
+        # The grids move lines by up to the ranges: the first pass keeps well
+        # clear of truncated borders and holders; the second, a narrower look
+        # around the first's answer, chooses its planes there.
+        prob.select(p, motion_px=opt.grid_motion_px[pass_])
+        subset = prob.subset(max(2000, int(prob.keep.sum()) // 4), opt.seed + 1)
         for k, names in enumerate(STAGES):
             if pass_ == 0:
                 cr = [(0.0, opt.ranges[n]) for n in names]
@@ -565,11 +611,13 @@ def finish(prob: RPProblem, opt: RPOptions, fit, scale, grid_best, evals, second
     x = fit.x
     jack = jackknife_sigma(prob, x, scale)
     batch, spread = batch_sigma(prob, opt, x, scale)
-    sigma = np.fmax(np.fmax(np.array(fit.sigma), jack), batch)
+    lumpy = slice_sigma(prob, opt, x)
+    sigma = np.fmax(np.fmax(np.fmax(np.array(fit.sigma), jack), batch), lumpy)
     res = RPResult(x=x, fit=fit, grid_best=grid_best, evaluations=evals + fit.nfev, planes=dict(prob.last_selection),
                    slices=cost_slices(prob, x, opt), sigma_curvature=np.array(fit.sigma), sigma_jackknife=jack,
                    sigma=sigma, cost_nominal=prob.cost(np.zeros(5)), cost_final=prob.cost(x), seconds=seconds)
     res.sigma_batches = batch
+    res.sigma_slices = lumpy
     res.batch_estimates = spread
     # A parameter on its search bound was not found, whatever its curvature
     # says; nor are those strongly correlated with it.
@@ -582,6 +630,49 @@ def finish(prob: RPProblem, opt: RPOptions, fit, scale, grid_best, evals, second
     for k in lost:
         res.sigma[k] = np.inf
     return res
+
+
+def slice_sigma(prob: RPProblem, opt: RPOptions, x, batches: int = 5, n: int = 41) -> np.ndarray:
+    """Sigma from where disjoint batches of planes put each parameter's
+    minimum along its whole search range (others held at ``x``).
+
+    A local sigma cannot see a cost that is flat over many pixels with
+    shallow spurious dips (a tilt or the v shift when truncation leaves few
+    informative planes); batches of planes then put their minima far apart.
+    Each minimum is refined by a parabola through its grid neighbours.
+    """
+    kept = np.flatnonzero(prob.keep)
+    pair_id = prob.vi[kept] * len(prob.R) + prob.vj[kept]
+    _, inverse = np.unique(pair_id, return_inverse=True)
+    rng = np.random.default_rng(opt.seed + 11)
+    group = rng.permutation(inverse.max() + 1)[inverse] % batches
+    arrays = [prob._arrays(kept[group == b], x) for b in range(batches)]
+    arrays = [a for a in arrays if len(a[0]) >= 100]
+    out = np.full(5, np.nan)
+    if len(arrays) < 3:
+        return out
+    for k, name in enumerate(NAMES):
+        grid = np.linspace(-1.5 * opt.ranges[name], 1.5 * opt.ranges[name], n)
+        step = grid[1] - grid[0]
+        mins = []
+        for arr in arrays:
+            c = []
+            for val in grid:
+                q = np.array(x, float)
+                q[k] = val
+                c.append(prob.normalised_cost(q, arr))
+            c = np.array(c)
+            i = int(np.argmin(c))
+            m = grid[i]
+            if 0 < i < n - 1:
+                den = c[i - 1] - 2 * c[i] + c[i + 1]
+                if den > 0:
+                    m += 0.5 * step * (c[i - 1] - c[i + 1]) / den
+            mins.append(m)
+        mins = np.array(mins)
+        # the grid's own resolution is not an uncertainty of the estimate
+        out[k] = max(float(mins.std(ddof=1)) / np.sqrt(len(mins)) - 0.25 * step, 0.0)
+    return out
 
 
 def batch_sigma(prob: RPProblem, opt: RPOptions, x, scale: float, batches: int = 5):
@@ -636,7 +727,7 @@ def jackknife_sigma(prob: RPProblem, x, scale: float, groups: int = 12) -> np.nd
     fraction f of the information moves the estimate with variance
     var * f / (1 - f).
     """
-    vi, _, vj, _, perm, _ = prob._kept
+    vi, _, vj, _, perm, *_ = prob._kept
     vj_res = np.empty_like(vj)
     vj_res[perm] = vj
     n_views = len(prob.R)
@@ -751,6 +842,7 @@ def document(res: RPResult, prob: RPProblem, scan, opt: RPOptions) -> dict:
         params[n] = {"index": k, "initial": 0.0, "free": True, "value": float(res.x[k]),
                      "sigma": float(res.sigma[k]) if np.isfinite(res.sigma[k]) else None, "unit": u,
                      "sigma_curvature": float(res.sigma_curvature[k]), "sigma_jackknife": float(res.sigma_jackknife[k]),
+                     "sigma_batches": float(res.sigma_batches[k]), "sigma_slices": float(res.sigma_slices[k]),
                      "grid": float(res.grid_best[k]), "determined": n not in undetermined}
     axes = [{"name": a.name, "type": a.type, "direction": list(a.direction),
              "point": list(a.point) if a.point is not None else [0.0, 0.0, 0.0]} for a in scan.config.axes]
