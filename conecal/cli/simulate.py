@@ -36,6 +36,8 @@ def _system_of(scan_dir) -> dict:
 @click.option("--effect", "effects", multiple=True, metavar="NAME[:K=V,...]",
               help=f"Switch on a physical effect (repeatable). Known: {', '.join(sorted(REGISTRY))}.")
 @click.option("--dense-holder", is_flag=True, help="Add a dense object holder (robot, circular).")
+@click.option("--schedule", type=click.Choice(["uniform", "sweep"]), default=None,
+              help="Rotation: step evenly through a turn, or swing back and forth at varying speed.")
 @click.option("--truncation", type=click.Choice(["axial", "transaxial"]), default=None,
               help="Circular: an object taller (axial) or wider (transaxial) than the detector sees.")
 @click.option("--misalignment", default=None, metavar="random|U,V,ETA,THETA,PHI",
@@ -45,8 +47,8 @@ def _system_of(scan_dir) -> dict:
               help="A simulated scan directory whose true source, detector and nominal set-up to reuse "
                    "(linear and rotation only): two scans of one system.")
 @click.option("--overwrite", is_flag=True, help="Replace OUT if it exists.")
-def command(kind, out, seed, frames, photons, blur_px, values, effects, dense_holder, truncation, misalignment,
-            same_as, overwrite):
+def command(kind, out, seed, frames, photons, blur_px, values, effects, dense_holder, schedule, truncation,
+            misalignment, same_as, overwrite):
     """Simulate a scan of KIND (linear | rotation | robot | circular) into OUT.
 
     Writes scan.yaml, log.csv, projections.tif (exact line integrals,
@@ -68,6 +70,10 @@ def command(kind, out, seed, frames, photons, blur_px, values, effects, dense_ho
         if kind not in ("robot", "circular"):
             raise InputError("--dense-holder: only for robot and circular scans")
         kw["dense_holder"] = True
+    if schedule is not None:
+        if kind != "rotation":
+            raise InputError("--schedule: only for rotation scans")
+        kw["schedule"] = schedule
     if (truncation or misalignment) and kind != "circular":
         raise InputError("--truncation, --misalignment: only for circular scans")
     if truncation:

@@ -28,8 +28,9 @@ How the work is split:
   (object present at the border: a long object, a wide object or a holder
   reaching out of the field of view) are dropped, automatically;
 - the five parameters are found by 2D grids over (shift u, eta),
-  (shift v, theta), (theta, phi) and (shift v, theta) again, twice (the
-  second time narrower), then a joint Gauss-Newton refinement with the
+  (shift v, theta), (theta, phi) and (shift v, theta) again, joint local
+  refinements from a 3x3 pattern of tilts (the tilts barely change the
+  cost and trade against the others), the 2D grids again, narrower, then a joint Gauss-Newton refinement with the
   analytic derivative of the cost; sigma is the largest of the cost's
   curvature (scaled by the residual level), a leave-views-out jackknife
   and the spread of disjoint batches of planes.
@@ -69,6 +70,7 @@ class RPOptions:
     holder_ratio: float = 2.5           # a holder is this many times denser than the object
     motion_margin_px: float = 3.0       # lines this close to a truncated stretch or holder are dropped too
     grid_motion_px: tuple = (15.0, 8.0)  # the same margin during the two grid passes
+    grid_cost: str = "normalised"       # or "ssd"; normalised: sum (a-b)^2 / sum (a^2+b^2)
     undetermined_sigma: dict = field(default_factory=lambda: {"shift_u_px": 2.0, "shift_v_px": 2.0, "eta_deg": 0.5,
                                                               "theta_deg": 1.0, "phi_deg": 1.0})
     seed: int = 0
@@ -545,7 +547,7 @@ class RPResult:
     at_bound: list = field(default_factory=list)
 
 
-def _grid(prob: RPProblem, p, names, centre_range, steps, subset):
+def _grid(prob: RPProblem, p, names, centre_range, steps, subset, normalised=False):
     """Best point of a grid over ``names`` (others held at ``p``)."""
     idx = [NAMES.index(n) for n in names]
     axes = [c + np.arange(-np.floor(w / steps[n] + 1e-9), np.floor(w / steps[n] + 1e-9) + 1) * steps[n]
@@ -556,11 +558,35 @@ def _grid(prob: RPProblem, p, names, centre_range, steps, subset):
         q = np.array(p, float)
         q[idx] = combo
         # (no BLAS here: its threads, left spinning, slow the numba look-ups tenfold)
-        c = prob.normalised_cost(q, subset)
+        if normalised:
+            c = prob.normalised_cost(q, subset)
+        else:
+            r = prob.residuals(q, subset)
+            c = float(np.sum(r * r))
         n += 1
         if c < best:
             best, best_q = c, q
     return best_q, n
+
+
+def _multistart(prob: RPProblem, opt: RPOptions, p, subset) -> tuple[np.ndarray, int]:
+    from scipy.optimize import least_squares
+
+    lo = np.array([-1.5 * opt.ranges[n] for n in NAMES])
+    best, best_c, n = np.array(p, float), prob.normalised_cost(p, subset), 1
+    steps = np.array([opt.grid_steps[x] for x in NAMES])
+    for th in (-2 / 3, 0.0, 2 / 3):
+        for ph in (-2 / 3, 0.0, 2 / 3):
+            q0 = np.array(p, float)
+            q0[3] = th * opt.ranges["theta_deg"]
+            q0[4] = ph * opt.ranges["phi_deg"]
+            r = least_squares(lambda q: prob.residuals(q, subset), q0, jac=lambda q: prob.jacobian(q, subset),
+                              bounds=(lo, -lo), x_scale=steps, max_nfev=15, method="trf")
+            n += r.nfev
+            c = prob.normalised_cost(r.x, subset)
+            if c < best_c:
+                best, best_c = r.x, c
+    return best, n
 
 
 def grid_search(prob: RPProblem, opt: RPOptions, progress=None) -> tuple[np.ndarray, int]:
@@ -579,10 +605,16 @@ def grid_search(prob: RPProblem, opt: RPOptions, progress=None) -> tuple[np.ndar
                 cr = [(0.0, opt.ranges[n]) for n in names]
             else:
                 cr = [(p[NAMES.index(n)], 6 * opt.grid_steps[n]) for n in names]
-            p, n = _grid(prob, p, names, cr, opt.grid_steps, subset)
+            p, n = _grid(prob, p, names, cr, opt.grid_steps, subset, opt.grid_cost == "normalised")
             evals += n
             if progress:
                 progress(pass_ * len(STAGES) + k + 1, 2 * len(STAGES))
+        if pass_ == 0:
+            # The tilts barely change the cost and trade against v, u and eta:
+            # grids one pair at a time can stall in a corner. Joint local
+            # refinements from a 3x3 pattern of tilts pick the best basin.
+            p, n = _multistart(prob, opt, p, subset)
+            evals += n
     return p, evals
 
 

@@ -33,7 +33,8 @@ class World:
     logged; true_readings : (n, k) where the axes really stood while each
     frame was exposed; chain : the true axes (None for a robot);
     robot_transforms : true holder-to-lab transforms (robot scans);
-    source_offsets : (n, 3) mm added to the true focal-spot position.
+    source_offsets : (n, 3) mm added to the true focal-spot position;
+    detector_offsets : (n, 3) mm added to the true detector position.
     """
 
     times: np.ndarray
@@ -42,12 +43,14 @@ class World:
     chain: Chain | None
     robot_transforms: RigidTransform | None
     source_offsets: np.ndarray
+    detector_offsets: np.ndarray = None
 
     @classmethod
     def start(cls, times, readings, chain=None, robot_transforms=None) -> "World":
         times = np.asarray(times, dtype=float)
         readings = np.asarray(readings, dtype=float)
-        return cls(times, readings, readings.copy(), chain, robot_transforms, np.zeros((len(times), 3)))
+        return cls(times, readings, readings.copy(), chain, robot_transforms, np.zeros((len(times), 3)),
+                   np.zeros((len(times), 3)))
 
     def transforms(self) -> RigidTransform:
         """True sample-to-lab transform per frame."""

@@ -130,3 +130,40 @@ class EncoderLatency(Effect):
         t = world.times
         q = np.column_stack([np.interp(t + self.latency, t, world.readings[:, k]) for k in range(world.readings.shape[1])])
         return world.replace(true_readings=q)
+
+
+@register
+@dataclass(frozen=True, eq=False)
+class DetectorDrift(Effect):
+    """Linear drift of the detector over time."""
+
+    velocity: tuple = (0.0005, 0.0, 0.0)
+    name = "detector_drift"
+    physics = "the detector's mount warms and creeps, so the panel moves slowly during the scan"
+    units = {"velocity": "mm/s"}
+
+    def apply(self, world):
+        v = np.asarray(self.velocity, dtype=float).reshape(3)
+        return world.replace(detector_offsets=world.detector_offsets + (world.times - world.times[0])[:, None] * v)
+
+
+@register
+@dataclass(frozen=True, eq=False)
+class Backlash(Effect):
+    """An axis lags its encoder by half the backlash in the direction of motion."""
+
+    axis: str = "theta"
+    amount: float = 0.05
+    name = "backlash"
+    physics = ("play in a stage's drive: after each reversal the encoder (on the motor) runs ahead of the "
+               "carriage by the backlash, so the error follows the sign of the velocity")
+    units = {"amount": "mm or deg (the axis' unit)"}
+
+    def apply(self, world):
+        a = _axis(world, self.axis)
+        k = world.chain.names.index(a.name)
+        q = world.readings[:, k]
+        v = np.gradient(q, world.times) if len(q) > 1 else np.zeros_like(q)
+        true = world.true_readings.copy()
+        true[:, k] = true[:, k] - 0.5 * self.amount * np.sign(v)
+        return world.replace(true_readings=true)

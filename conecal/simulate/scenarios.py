@@ -58,7 +58,11 @@ class Scenario:
 
     def frame_geometry(self, k: int) -> ConeGeometry:
         off = self.world.source_offsets[k]
-        return self.geometry if not np.any(off) else self.geometry.replace(source=self.geometry.source + off)
+        det = self.world.detector_offsets[k] if self.world.detector_offsets is not None else np.zeros(3)
+        if not np.any(off) and not np.any(det):
+            return self.geometry
+        return self.geometry.replace(source=self.geometry.source + off,
+                                     detector_origin=self.geometry.detector_origin + det)
 
     def solids(self, k: int, T: RigidTransform) -> list:
         out = [Sphere(T.apply(p), r, mu) for p, r, mu in zip(self.sphere_positions, self.sphere_radii, self.sphere_mu)]
@@ -140,8 +144,14 @@ def linear_raster(seed=0, *, rows=512, cols=512, pitch=0.2, sod=100.0, sdd=500.0
 
 def rotation_scan(seed=0, *, rows=512, cols=512, pitch=0.2, sod=150.0, sdd=600.0, diameters=(2.0,), mu=0.5,
                   n_spheres=5, n_frames=72, dt=1.0, axis_tilt_deg=0.3, axis_offset_mm=0.3,
-                  misalign=(0.5, 2.0, 0.5), true_geometry: ConeGeometry | None = None) -> Scenario:
+                  misalign=(0.5, 2.0, 0.5), true_geometry: ConeGeometry | None = None,
+                  schedule: str = "uniform") -> Scenario:
     """Several spheres on a sample rotated by a rotary axis on top of x, y, z stages.
+
+    ``schedule``: "uniform" steps the axis evenly through one turn;
+    "sweep" swings it back and forth at varying speed (30..330 deg), as a
+    scan that must tell latency (error ~ velocity) from backlash (error ~
+    sign of velocity) needs.
 
     The reference sphere (id 0) sits at the lab origin at zero readings; the
     others are spread over heights so that their shadows rarely overlap.
@@ -170,7 +180,13 @@ def rotation_scan(seed=0, *, rows=512, cols=512, pitch=0.2, sod=150.0, sdd=600.0
         pos.append(np.array([rad * np.cos(ang), h, rad * np.sin(ang)]))
     pos = np.array(pos)
     radii = np.array([diameters[k % len(diameters)] / 2 for k in range(n_spheres)])
-    theta = np.arange(n_frames) * 360.0 / n_frames
+    if schedule == "uniform":
+        theta = np.arange(n_frames) * 360.0 / n_frames
+    elif schedule == "sweep":
+        ph = np.linspace(0, 3 * np.pi, n_frames)
+        theta = 180.0 + 150.0 * np.sin(ph) * (0.75 + 0.25 * np.cos(ph / 3))
+    else:
+        raise ValueError(f"schedule must be uniform or sweep, not {schedule!r}")
     readings = np.column_stack([np.zeros((n_frames, 3)), theta])
     times = np.arange(n_frames) * dt
     axes = XYZ_AXES + [{"name": "theta", "type": "rotary", "direction": [0.0, 1.0, 0.0], "point": [2.0, 0.0, 1.0]}]

@@ -1,0 +1,227 @@
+"""Which left-out physics explains the residuals: refit with each candidate
+effect, judge by held-out frames and an information criterion, refuse to
+claim what does not beat noise, and say so when two effects explain the
+data equally well.
+
+Every candidate is refitted together with the fit's own parameters (see
+``ResultModel._setup_base``), so that an effect is credited only with what
+they cannot absorb. Held-out
+error: two-fold, even frames against odd frames. A candidate is claimed
+when it lowers the held-out chi^2 by more than ``max(10, 3k)`` (k its
+parameter count) and BIC by more than 10. When the best claim leaves
+significant structure, pairs with the other candidates are tried.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.optimize import least_squares
+
+from ..effects.motion import AxisNonOrthogonality, AxisScale, Backlash, DetectorDrift, EncoderLatency, FocalSpotDrift, RotaryWobble
+from ..kinematics import LinearAxis, RotaryAxis
+from .structure import structure_tests
+
+
+@dataclass(frozen=True)
+class Candidate:
+    """An effect with its fitted parameters as a vector."""
+
+    label: str
+    names: tuple
+    units: tuple
+    scales: tuple
+    build: object          # vector -> Effect
+    describe: object       # vector, sigma -> plain words
+
+    @property
+    def k(self) -> int:
+        return len(self.names)
+
+
+def _moving(model):
+    return [k for k, n in enumerate(model.chain.names) if np.ptp(model.readings[:, k]) > 0]
+
+
+def candidates(model) -> list[Candidate]:
+    """Every effect of the registry that this recording could show, parameterised."""
+    out = []
+    dur = max(float(np.ptp(model.times)), 1e-9)
+    out.append(Candidate("focal_spot_drift", ("vx", "vy", "vz"), ("mm/s",) * 3, (1e-3 / dur,) * 3,
+                         lambda x: FocalSpotDrift(tuple(x)),
+                         lambda x, s: "the focal spot drifted (" + ", ".join(
+                             f"{a} {1e3 * v:+.3f} ± {1e3 * e:.3f} µm/s" for a, v, e in zip("xyz", x, s)) + ")"))
+    out.append(Candidate("detector_drift", ("vx", "vy", "vz"), ("mm/s",) * 3, (1e-3 / dur,) * 3,
+                         lambda x: DetectorDrift(tuple(x)),
+                         lambda x, s: "the detector drifted (" + ", ".join(
+                             f"{a} {1e3 * v:+.3f} ± {1e3 * e:.3f} µm/s" for a, v, e in zip("xyz", x, s)) + ")"))
+    moving = _moving(model)
+    axes = model.chain.axes
+    for k in moving:
+        a = axes[k]
+        unit = "deg" if isinstance(a, RotaryAxis) else "mm"
+        q = model.readings[:, k]
+        v = np.gradient(q, model.times)
+        if isinstance(a, LinearAxis):
+            out.append(Candidate(f"axis_scale:{a.name}", ("scale",), ("",), (1e-4,),
+                                 lambda x, n=a.name: AxisScale(n, float(x[0])),
+                                 lambda x, s, n=a.name: f"axis {n} moves {x[0] * 1e6:+.0f} ± {s[0] * 1e6:.0f} ppm "
+                                                        "more than its encoder says"))
+            for b in moving:
+                if b != k and isinstance(axes[b], LinearAxis):
+                    out.append(Candidate(f"axis_nonorthogonality:{a.name}->{axes[b].name}", ("angle",), ("deg",), (0.01,),
+                                         lambda x, n=a.name, m=axes[b].name: AxisNonOrthogonality(n, m, float(x[0])),
+                                         lambda x, s, n=a.name, m=axes[b].name:
+                                         f"axis {n} leans {x[0]:+.4f} ± {s[0]:.4f} deg towards {m}"))
+        if isinstance(a, RotaryAxis):
+            out.append(Candidate(f"rotary_wobble:{a.name}", ("a_cos", "a_sin"), ("deg", "deg"), (0.005, 0.005),
+                                 lambda x, n=a.name: RotaryWobble(n, float(np.hypot(*x)), float(np.degrees(np.arctan2(x[1], x[0])))),
+                                 lambda x, s, n=a.name: f"axis {n} wobbles by {np.hypot(*x):.4f} ± {np.hypot(*s) / np.sqrt(2):.4f} deg "
+                                                        f"once per turn (phase {np.degrees(np.arctan2(x[1], x[0])):.0f} deg)"))
+        if np.ptp(v) > 0 or np.abs(v).max() > 0:
+            out.append(Candidate(f"encoder_latency", ("latency",), ("s",), (0.005,),
+                                 lambda x: EncoderLatency(float(x[0])),
+                                 lambda x, s: f"frames were exposed {1e3 * x[0]:+.1f} ± {1e3 * s[0]:.1f} ms after the "
+                                              "encoders were read (error ∝ velocity)"))
+        if (v > 0).any() and (v < 0).any():
+            out.append(Candidate(f"backlash:{a.name}", ("amount",), (unit,), (0.005,),
+                                 lambda x, n=a.name: Backlash(n, float(x[0])),
+                                 lambda x, s, n=a.name, u=unit: f"axis {n} has {x[0]:+.4f} ± {s[0]:.4f} {u} backlash "
+                                                                "(error follows the direction of motion)"))
+    # latency is one effect for all axes together
+    seen, uniq = set(), []
+    for c in out:
+        if c.label not in seen:
+            seen.add(c.label)
+            uniq.append(c)
+    return uniq
+
+
+def _fit(model, cands, select=None, x0=None):
+    """Least squares over the nine geometry parameters plus each candidate's."""
+    ks = [c.k for c in cands]
+    nb = model.n_base
+    scales = np.concatenate([model.base_scales] + [c.scales for c in cands])
+
+    def split(x):
+        effs, i = [], nb
+        for c, k in zip(cands, ks):
+            effs.append(c.build(x[i:i + k]))
+            i += k
+        return x[:nb], effs
+
+    def fun(x):
+        x9, effs = split(x)
+        return model.whitened(effs, x9, select)
+
+    x0 = np.zeros(nb + sum(ks)) if x0 is None else x0
+    res = least_squares(fun, x0, x_scale=scales, method="lm", xtol=1e-10, ftol=1e-10, max_nfev=200 * len(x0))
+    J = res.jac
+    try:
+        cov = np.linalg.pinv(J.T @ J)
+    except np.linalg.LinAlgError:
+        cov = np.full((len(x0), len(x0)), np.nan)
+    chi2 = float(res.fun @ res.fun)
+    dof = max(len(res.fun) - len(x0), 1)
+    cov *= max(chi2 / dof, 1.0)
+    return res.x, np.sqrt(np.clip(np.diag(cov), 0, None)), chi2, split
+
+
+def _heldout(model, cands) -> float:
+    """Two-fold held-out chi^2: fit on even frames, score odd ones, and back."""
+    even = model.obs.row % 2 == 0
+    total = 0.0
+    for train in (even, ~even):
+        x, _, _, split = _fit(model, cands, train)
+        x9, effs = split(x)
+        r = model.whitened(effs, x9, ~train)
+        total += float(r @ r)
+    return total
+
+
+def evaluate(model, cands) -> dict:
+    x, sig, chi2, split = _fit(model, cands)
+    n = 2 * len(model.obs.row)
+    k = len(x)
+    x9, effs = split(x)
+    return {"cands": cands, "x": x, "sigma": sig, "chi2": chi2, "bic": chi2 + k * np.log(n),
+            "heldout": _heldout(model, cands), "x9": x9, "effects": effs}
+
+
+def diagnose(model, *, alpha: float = 0.01, progress=None) -> dict:
+    """The whole decision; returns a plain dict (JSON-ready) and the chosen evaluation."""
+    base = evaluate(model, [])
+    r0 = model.whitened(None, np.zeros(model.n_base))
+    tests_before = structure_tests(model, r0, alpha)
+    cands = candidates(model)
+    rows = []
+    evals = {}
+    for i, c in enumerate(cands):
+        e = evaluate(model, [c])
+        evals[c.label] = e
+        gain = base["heldout"] - e["heldout"]
+        nb = model.n_base
+        rows.append({"effect": c.label, "parameters": dict(zip(c.names, e["x"][nb:].tolist())),
+                     "sigma": dict(zip(c.names, e["sigma"][nb:].tolist())),
+                     "heldout_gain_chi2": gain, "bic_gain": base["bic"] - e["bic"],
+                     "claimable": bool(gain > max(10.0, 3 * c.k) and base["bic"] - e["bic"] > 10.0)})
+        if progress:
+            progress(i + 1, len(cands) + 1)
+    rows.sort(key=lambda r: -r["heldout_gain_chi2"])
+    claimed = [r for r in rows if r["claimable"]]
+    chosen = []
+    ambiguous = []
+    if claimed:
+        best = claimed[0]
+        chosen = [best["effect"]]
+        margin = max(3.0, 0.05 * best["heldout_gain_chi2"])
+        ambiguous = [r["effect"] for r in claimed[1:] if best["heldout_gain_chi2"] - r["heldout_gain_chi2"] < margin]
+        e_best = evals[best["effect"]]
+        after = structure_tests(model, model.whitened(e_best["effects"], e_best["x9"]), alpha)
+        if any(t["significant"] for t in after):
+            # one effect does not explain it all: try pairs with the best
+            best_pair, best_gain = None, 0.0
+            by = {c.label: c for c in cands}
+            for r in claimed[1:4]:
+                e2 = evaluate(model, [by[best["effect"]], by[r["effect"]]])
+                gain = e_best["heldout"] - e2["heldout"]
+                if gain > max(10.0, 3 * by[r["effect"]].k) and e_best["bic"] - e2["bic"] > 10 and gain > best_gain:
+                    best_pair, best_gain = (r["effect"], e2), gain
+            if best_pair is not None:
+                chosen.append(best_pair[0])
+                evals["+".join(chosen)] = best_pair[1]
+    final = evals["+".join(chosen)] if chosen else base
+    r_after = model.whitened(final["effects"], final["x9"])
+    tests_after = structure_tests(model, r_after, alpha)
+    px_before = (model.obs.xy - model.predict(None, np.zeros(model.n_base)))
+    px_after = (model.obs.xy - model.predict(final["effects"], final["x9"]))
+    noise = float(np.sqrt(np.mean(model.obs.sigma ** 2)))
+    found = []
+    if chosen:
+        by = {c.label: c for c in cands}
+        i = model.n_base
+        for label in chosen:
+            c = by[label]
+            x, s = final["x"][i:i + c.k], final["sigma"][i:i + c.k]
+            i += c.k
+            found.append({"effect": label, "parameters": dict(zip(c.names, x.tolist())),
+                          "sigma": dict(zip(c.names, s.tolist())), "units": dict(zip(c.names, c.units)),
+                          "statement": c.describe(x, s), "physics": c.build(x).physics})
+    verdict = ("no left-out effect beats the noise" if not chosen else
+               " and ".join(f["statement"] for f in found) +
+               (f"; not distinguishable here from {', '.join(ambiguous)}" if ambiguous else ""))
+    return {
+        "verdict": verdict,
+        "effects": found,
+        "ambiguous_with": ambiguous,
+        "candidates": rows,
+        "tests_before": tests_before,
+        "tests_after": tests_after,
+        "rms_px_before": float(np.sqrt(np.mean(px_before ** 2))),
+        "rms_px_after": float(np.sqrt(np.mean(px_after ** 2))),
+        "noise_floor_px": noise,
+        "heldout_gain_chi2": float(base["heldout"] - final["heldout"]) if chosen else 0.0,
+        "n_observations": int(len(model.obs.row)),
+        "base_parameters": dict(zip(model.base_names, final["x9"].tolist())),
+    }, final
