@@ -115,7 +115,12 @@ def command(results, out_dir, reconstruct):
 
     console = Console()
     for path in results:
-        doc = read_json(path, ("conecal-geometry", "conecal-poses"))
+        doc = read_json(path, ("conecal-geometry", "conecal-poses", "conecal-diagnosis"))
+        if doc["format"].startswith("conecal-diagnosis"):
+            console.print(f"[bold]{path}[/] — diagnose: {doc['verdict']}")
+            console.print(f"  residual RMS {doc['rms_px_before']:.4f} -> {doc['rms_px_after']:.4f} px "
+                          f"(noise floor {doc['noise_floor_px']:.4f} px)")
+            continue
         if doc["format"].startswith("conecal-poses"):
             _report_poses(console, path, doc)
             continue

@@ -224,4 +224,7 @@ def diagnose(model, *, alpha: float = 0.01, progress=None) -> dict:
         "heldout_gain_chi2": float(base["heldout"] - final["heldout"]) if chosen else 0.0,
         "n_observations": int(len(model.obs.row)),
         "base_parameters": dict(zip(model.base_names, final["x9"].tolist())),
+        "observations": {"frame": model.obs.frame.tolist(), "id": model.obs.ids.tolist(),
+                         "time": model.times[model.obs.row].tolist(),
+                         "before": px_before.tolist(), "after": px_after.tolist()},
     }, final

@@ -20,7 +20,7 @@ from .. import __version__
 from ..jsonio import read_json
 from . import plots
 
-FORMATS = ("conecal-geometry", "conecal-poses")
+FORMATS = ("conecal-geometry", "conecal-poses", "conecal-diagnosis")
 
 _STYLE = """
 body{font-family:system-ui,sans-serif;max-width:1100px;margin:2em auto;color:#222}
@@ -116,6 +116,22 @@ def _poses_section(path, doc) -> tuple[str, int]:
     return "\n".join(parts), len(figs)
 
 
+def _diagnosis_section(path, doc) -> tuple[str, int]:
+    parts = [f"<h2>{html.escape(str(path))} — diagnose {html.escape(str(doc.get('stage', '')))} on "
+             f"{html.escape(str(doc.get('scan', '?')))}</h2>",
+             f"<p><b>{html.escape(doc.get('verdict', ''))}</b></p>",
+             f"<p>Residual RMS {doc['rms_px_before']:.4f} → {doc['rms_px_after']:.4f} px (noise floor "
+             f"{doc['noise_floor_px']:.4f} px); held-out χ² gain {doc.get('heldout_gain_chi2', 0):.1f}.</p>"]
+    rows = "".join(f"<tr><td>{html.escape(c['effect'])}</td><td class=num>{c['heldout_gain_chi2']:.1f}</td>"
+                   f"<td class=num>{c['bic_gain']:.1f}</td><td>{'yes' if c['claimable'] else ''}</td></tr>"
+                   for c in doc.get("candidates", []))
+    parts.append("<table><tr><th>candidate</th><th>held-out χ² gain</th><th>BIC gain</th><th>beats noise</th></tr>"
+                 + rows + "</table>")
+    png = plots.diagnosis(doc)
+    parts.append(_figure(png, "Residuals against time before and after modelling the effect (dashed: ±2σ noise)."))
+    return "\n".join(parts), int(png is not None)
+
+
 def reconstruction_figure(doc) -> tuple[bytes, dict] | None:
     """FDK (itk-rtk) of the scan behind an rp-grid result, nominal vs corrected:
     central slices and their sharpness. None when not possible here."""
@@ -157,6 +173,8 @@ def write_report(results: list, out_dir, *, reconstruct: bool = False) -> Path:
         doc = read_json(path, FORMATS)
         if doc["format"].startswith("conecal-poses"):
             sec, n = _poses_section(path, doc)
+        elif doc["format"].startswith("conecal-diagnosis"):
+            sec, n = _diagnosis_section(path, doc)
         else:
             extra = []
             if reconstruct:

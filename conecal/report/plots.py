@@ -182,3 +182,28 @@ def slices(images: list[np.ndarray], titles: list[str]) -> bytes:
         ax.set_title(t, fontsize=9)
         ax.axis("off")
     return _png(fig)
+
+
+def diagnosis(doc) -> bytes | None:
+    """diagnose: residuals against time before and after modelling the effect."""
+    obs = doc.get("observations")
+    if not obs:
+        return None
+    plt = _plt()
+    t = np.asarray(obs["time"], float)
+    b = np.asarray(obs["before"], float)
+    a = np.asarray(obs["after"], float)
+    fig, axes = plt.subplots(1, 2, figsize=(11, 3.3), sharey=True)
+    for ax, r, title in ((axes[0], b, f"before (RMS {doc['rms_px_before']:.4f} px)"),
+                         (axes[1], a, f"after (RMS {doc['rms_px_after']:.4f} px)")):
+        ax.plot(t, r[:, 0], ".", ms=3, label="dx")
+        ax.plot(t, r[:, 1], ".", ms=3, label="dy")
+        ax.axhline(0, color="k", lw=0.5)
+        for s in (-2, 2):
+            ax.axhline(s * doc["noise_floor_px"], color="grey", lw=0.5, ls="--")
+        ax.set_xlabel("time (s)")
+        ax.set_title(title, fontsize=9)
+    axes[0].set_ylabel("residual (px)")
+    axes[0].legend(fontsize=8)
+    fig.suptitle(doc.get("verdict", "")[:140], fontsize=8)
+    return _png(fig)
