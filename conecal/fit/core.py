@@ -56,6 +56,7 @@ class FitResult:
     success: bool
     message: str
     units: list[str] = field(default_factory=list)
+    history: list[float] = field(default_factory=list)   # chi^2 at each function evaluation
 
     @property
     def reduced_chi2(self) -> float:
@@ -102,8 +103,12 @@ def solve(parameters: list[Parameter], residuals: Callable[[np.ndarray], np.ndar
         x[free] = xf
         return x
 
+    history = []
+
     def fun(xf):
-        return residuals(full(xf))
+        r = residuals(full(xf))
+        history.append(float(r @ r))     # chi^2 per evaluation: the report's convergence plot
+        return r
 
     def jac(xf):
         return jacobian(full(xf))[:, free]
@@ -195,4 +200,4 @@ def solve(parameters: list[Parameter], residuals: Callable[[np.ndarray], np.ndar
                      residuals=r, cost=float(res.cost), chi2=chi2, dof=dof, nfev=int(res.nfev),
                      njev=int(res.njev or 0), outliers=outliers, undetermined=undetermined,
                      null_combinations=combos, success=bool(res.status > 0), message=str(res.message),
-                     units=[p.unit for p in parameters])
+                     units=[p.unit for p in parameters], history=history[:-1] if len(history) > 1 else history)

@@ -28,6 +28,7 @@ def fit_summary(res: FitResult, residual_px: np.ndarray, *, start: str, loss: st
         "undetermined": res.undetermined,
         "null_combinations": res.null_combinations,
         "converged": res.success,
+        "chi2_history": list(res.history),
     }
 
 

@@ -94,6 +94,7 @@ def _geometry_section(path, doc, extra_figures) -> tuple[str, int]:
             (plots.residuals_vs_frame(doc), "Residuals against frame, and RMS per marker."),
             (plots.cost_slices(doc), "rp-grid: the cost along each parameter through the optimum "
                                      "(cf. the paper's Figures 7 and 8)."),
+            (plots.convergence(doc), "Convergence: χ² at each evaluation of the least-squares solver."),
             (plots.geometry_sketch(doc), "Source, detector and axes in the lab frame.")] + extra_figures
     figs = [(p, c) for p, c in figs if p is not None]
     parts += [_figure(p, c) for p, c in figs]

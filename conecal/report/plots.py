@@ -207,3 +207,17 @@ def diagnosis(doc) -> bytes | None:
     axes[0].legend(fontsize=8)
     fig.suptitle(doc.get("verdict", "")[:140], fontsize=8)
     return _png(fig)
+
+
+def convergence(doc) -> bytes | None:
+    """chi^2 at each function evaluation of the solver."""
+    h = (doc.get("fit") or {}).get("chi2_history")
+    if not h or len(h) < 2:
+        return None
+    plt = _plt()
+    fig, ax = plt.subplots(figsize=(5, 3))
+    ax.semilogy(np.arange(1, len(h) + 1), np.maximum(h, 1e-300), "o-", ms=3)
+    ax.set_xlabel("function evaluation")
+    ax.set_ylabel("χ²")
+    ax.set_title("convergence", fontsize=9)
+    return _png(fig)
