@@ -70,6 +70,7 @@ class RPOptions:
     holder_ratio: float = 2.5           # a holder is this many times denser than the object
     motion_margin_px: float = 3.0       # lines this close to a truncated stretch or holder are dropped too
     grid_motion_px: tuple = (15.0, 8.0)  # the same margin during the two grid passes
+    freeze_grangeat: bool = True        # Grangeat factors fixed at the selection geometry, like the weights
     grid_cost: str = "normalised"       # or "ssd"; normalised: sum (a-b)^2 / sum (a^2+b^2)
     undetermined_sigma: dict = field(default_factory=lambda: {"shift_u_px": 2.0, "shift_v_px": 2.0, "eta_deg": 0.5,
                                                               "theta_deg": 1.0, "phi_deg": 1.0})
@@ -458,7 +459,7 @@ class RPProblem:
         key_j = self.vj[idx] * 4.0 * self.tab.n_a + (self._lines(f, self.mj[idx])[4] % (2 * np.pi))
         perm = np.argsort(key_j, kind="stable")
         vi, mi, vj, mj = self.vi[idx], self.mi[idx], self.vj[idx][perm], self.mj[idx][perm]
-        Fi, Fj = self._grangeat(f, mi), self._grangeat(f, mj)
+        Fi, Fj = (self._grangeat(f, mi), self._grangeat(f, mj)) if self.opt.freeze_grangeat else (None, None)
         size = np.abs(self._values(f, vi, mi, F=Fi))
         size[perm] += np.abs(self._values(f, vj, mj, F=Fj))
         size *= 0.5
