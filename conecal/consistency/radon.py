@@ -8,57 +8,58 @@ planes coincide must agree; ``rp-grid`` compares them.
 
 Detector coordinates here are (u, v) in mm from the principal point, along
 the detector's column and row directions; a line is
-``u cos(alpha) + v sin(alpha) = s``.
+``u cos(alpha) + v sin(alpha) = s``. The loops are in :mod:`.kernels`.
 """
 
 from __future__ import annotations
 
-import cv2
 import numpy as np
+from scipy.ndimage import correlate1d
+
+from . import kernels
 
 
 def cosine_weighted(projection: np.ndarray, pixel_pitch, principal_point, sdd: float) -> np.ndarray:
     """``g * D / sqrt(D^2 + u^2 + v^2)``: the projection weighted by the
     cosine of each ray's angle to the detector normal (D = sdd, mm)."""
-    rows, cols = projection.shape
-    u = (np.arange(cols) - principal_point[0]) * pixel_pitch[0]
-    v = (np.arange(rows) - principal_point[1]) * pixel_pitch[1]
-    w = sdd / np.sqrt(sdd**2 + u[None, :] ** 2 + v[:, None] ** 2)
-    return (projection * w).astype(np.float32)
+    return kernels.cosine_weight(np.asarray(projection, np.float32), float(pixel_pitch[0]), float(pixel_pitch[1]),
+                                 float(principal_point[0]), float(principal_point[1]), 0.0, 0.0, float(sdd))
+
+
+def derivative_kernel(sigma_bins: float) -> np.ndarray:
+    """Derivative-of-Gaussian taps normalised to differentiate a straight
+    line exactly (scipy's sampled kernel under-reads narrow ones by ~14 %)."""
+    sigma = max(float(sigma_bins), 0.5)
+    x = np.arange(-int(np.ceil(4 * sigma)), int(np.ceil(4 * sigma)) + 1, dtype=float)
+    w = np.exp(-x**2 / (2 * sigma**2))
+    # correlate1d: out[i] = sum_k taps[k] in[i + k]; d/ds needs taps ~ +x
+    return x * w / np.sum(x**2 * w)
+
+
+def s_derivative(radon: np.ndarray, ds: float, sigma_bins: float) -> np.ndarray:
+    """d/ds of Radon rows sampled every ``ds`` mm, smoothed by a Gaussian of ``sigma_bins``."""
+    return correlate1d(radon, derivative_kernel(sigma_bins), axis=-1, mode="constant") / ds
 
 
 def radon_derivative_table(image: np.ndarray, pixel_pitch: float, principal_point, n_angles: int = 180,
-                           n_offsets: int | None = None):
+                           n_offsets: int | None = None, smooth_bins: float = 0.5):
     """Radon transform of ``image`` and its derivative along ``s``.
 
     Lines ``u cos(a) + v sin(a) = s`` for ``a`` in [0, pi) (n_angles) and
     ``s`` on a grid of one pixel pitch (mm) covering the detector's
-    diagonal. The image is rotated by each angle about the principal point
-    (bilinear, OpenCV) and summed across, so each angle costs one warp.
-    Square pixels are assumed (resample first otherwise).
+    diagonal (Joseph's method, square pixels).
 
-    Returns (angles rad (n_a,), s mm (n_s,), radon (n_a, n_s) in image
-    units * mm, derivative (n_a, n_s) per mm).
+    Returns (angles rad (n_a,), s mm (n_s,), radon (n_a, n_s) in image units * mm,
+    derivative (n_a, n_s) per mm).
     """
     img = np.asarray(image, np.float32)
     rows, cols = img.shape
     half = int(np.ceil(np.hypot(rows, cols) / 2)) + 2
     n_s = n_offsets or 2 * half + 1
-    # pad so that rotation about the principal point keeps everything
-    size = 2 * half + 1
-    # the principal point moves to the canvas centre (sub-pixel, bilinear)
-    shift = np.float32([[1, 0, half - principal_point[0]], [0, 1, half - principal_point[1]]])
-    canvas = cv2.warpAffine(img, shift, (size, size), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT)
     angles = np.arange(n_angles) * np.pi / n_angles
-    radon = np.empty((n_angles, size), np.float64)
-    for k, a in enumerate(angles):
-        # rotate so that the direction (cos a, sin a) becomes +u; then columns index s
-        R = cv2.getRotationMatrix2D((half, half), np.degrees(a), 1.0)
-        rot = cv2.warpAffine(canvas, R, (size, size), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT)
-        radon[k] = rot.sum(axis=0, dtype=np.float64) * pixel_pitch
-    s = (np.arange(size) - half) * pixel_pitch
-    deriv = np.gradient(radon, pixel_pitch, axis=1)
-    if n_s != size:
-        lo = (size - n_s) // 2
-        s, radon, deriv = s[lo:lo + n_s], radon[:, lo:lo + n_s], deriv[:, lo:lo + n_s]
-    return angles, s, radon, deriv
+    s0 = -(n_s // 2) * pixel_pitch
+    radon = kernels.radon_joseph(img, float(pixel_pitch), float(pixel_pitch), float(principal_point[0]),
+                                 float(principal_point[1]), np.cos(angles), np.sin(angles), s0, float(pixel_pitch), n_s)
+    radon = radon.astype(np.float64)
+    s = s0 + np.arange(n_s) * pixel_pitch
+    return angles, s, radon, s_derivative(radon, pixel_pitch, smooth_bins)
