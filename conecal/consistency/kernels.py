@@ -30,57 +30,47 @@ def radon_joseph(img, pu, pv, c_ref, r_ref, cos_a, sin_a, s0, ds, n_s):
     sampling of the image (pixel-driven splatting aliases at rational
     slopes). Returns (n_a, n_s) in image units * mm.
     """
-    rows, cols = img.shape
     n_a = cos_a.shape[0]
     out = np.zeros((n_a, n_s), np.float32)
+    img_t = img.T
     for a in prange(n_a):
         ca = cos_a[a]
         sa = sin_a[a]
         for k in range(n_s):
             s = s0 + k * ds
-            acc = 0.0
-            if abs(ca) >= abs(sa):
-                # one sample per row: c = (s - v sa) / (ca pu) + c_ref
-                c_at0 = (s + r_ref * pv * sa) / (ca * pu) + c_ref
-                dc = -pv * sa / (ca * pu)
-                lo, hi = 0, rows - 1
-                if dc > 1e-12:
-                    lo = max(lo, int(np.ceil((0.0 - c_at0) / dc)))
-                    hi = min(hi, int(np.floor((cols - 1 - c_at0) / dc)))
-                elif dc < -1e-12:
-                    lo = max(lo, int(np.ceil((cols - 1 - c_at0) / dc)))
-                    hi = min(hi, int(np.floor((0.0 - c_at0) / dc)))
-                elif c_at0 < 0 or c_at0 > cols - 1:
-                    continue
-                for r in range(lo, hi + 1):
-                    c = c_at0 + dc * r
-                    i = int(c)
-                    if i >= cols - 1:
-                        i = cols - 2
-                    f = c - i
-                    acc += img[r, i] * (1.0 - f) + img[r, i + 1] * f
-                out[a, k] = acc * pv / abs(ca)
-            else:
-                r_at0 = (s + c_ref * pu * ca) / (sa * pv) + r_ref
-                dr = -pu * ca / (sa * pv)
-                lo, hi = 0, cols - 1
-                if dr > 1e-12:
-                    lo = max(lo, int(np.ceil((0.0 - r_at0) / dr)))
-                    hi = min(hi, int(np.floor((rows - 1 - r_at0) / dr)))
-                elif dr < -1e-12:
-                    lo = max(lo, int(np.ceil((rows - 1 - r_at0) / dr)))
-                    hi = min(hi, int(np.floor((0.0 - r_at0) / dr)))
-                elif r_at0 < 0 or r_at0 > rows - 1:
-                    continue
-                for c in range(lo, hi + 1):
-                    r = r_at0 + dr * c
-                    i = int(r)
-                    if i >= rows - 1:
-                        i = rows - 2
-                    f = r - i
-                    acc += img[i, c] * (1.0 - f) + img[i + 1, c] * f
-                out[a, k] = acc * pu / abs(sa)
+            if abs(ca) >= abs(sa):     # steep line: one sample per row
+                out[a, k] = _line_sum(img, s, sa, ca, pv, pu, r_ref, c_ref)
+            else:                      # flat line: one sample per column (the transposed case)
+                out[a, k] = _line_sum(img_t, s, ca, sa, pu, pv, c_ref, r_ref)
     return out
+
+
+@njit(cache=True)
+def _line_sum(img, s, a_major, a_minor, p_major, p_minor, ref_major, ref_minor):
+    """Integral along ``a_minor * x_minor + a_major * x_major = s`` of
+    ``img[major, minor]`` (mm from (ref_major, ref_minor), pitches p_*), one
+    sample per major index, linear across the minor one; |a_minor| >= |a_major|."""
+    n_major, n_minor = img.shape
+    m_at0 = (s + ref_major * p_major * a_major) / (a_minor * p_minor) + ref_minor
+    dm = -p_major * a_major / (a_minor * p_minor)
+    lo, hi = 0, n_major - 1
+    if dm > 1e-12:
+        lo = max(lo, int(np.ceil((0.0 - m_at0) / dm)))
+        hi = min(hi, int(np.floor((n_minor - 1 - m_at0) / dm)))
+    elif dm < -1e-12:
+        lo = max(lo, int(np.ceil((n_minor - 1 - m_at0) / dm)))
+        hi = min(hi, int(np.floor((0.0 - m_at0) / dm)))
+    elif m_at0 < 0 or m_at0 > n_minor - 1:
+        return 0.0
+    acc = 0.0
+    for j in range(lo, hi + 1):
+        m = m_at0 + dm * j
+        i = int(m)
+        if i >= n_minor - 1:
+            i = n_minor - 2
+        f = m - i
+        acc += img[j, i] * (1.0 - f) + img[j, i + 1] * f
+    return acc * p_major / abs(a_minor)
 
 
 @njit(cache=True, parallel=True)
