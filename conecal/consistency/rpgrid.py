@@ -504,9 +504,6 @@ class RPProblem:
         rng = np.random.default_rng(seed)
         return self._arrays(np.sort(rng.choice(kept, size=min(n, kept.size), replace=False)), self._p_sel)
 
-    def residuals_subset(self, p, arrays) -> np.ndarray:
-        return self._residuals(p, arrays)
-
     def cost(self, p) -> float:
         return self.normalised_cost(p)
 
@@ -535,6 +532,8 @@ class RPResult:
     seconds: dict
     pass1: np.ndarray = None     # estimate after the first pass (nominal cosine weights)
     sigma_slices: np.ndarray = None   # from batches' minima along each whole range
+    sigma_batches: np.ndarray = None  # from disjoint batches of view pairs refined alone
+    batch_estimates: np.ndarray = None
     at_bound: list = field(default_factory=list)
 
 
@@ -609,21 +608,38 @@ def grid_search(prob: RPProblem, opt: RPOptions, progress=None) -> tuple[np.ndar
     return p, evals
 
 
+def _parameters(opt: RPOptions, p, undetermined: bool = True) -> list:
+    """The five parameters for the least-squares core, bounded at 1.5x the grid ranges."""
+    from ..fit.core import Parameter
+
+    return [Parameter(n, float(p[k]), lower=-1.5 * opt.ranges[n], upper=1.5 * opt.ranges[n], unit=u,
+                      scale=opt.grid_steps[n], undetermined_sigma=opt.undetermined_sigma[n] if undetermined else None)
+            for k, (n, u) in enumerate(zip(NAMES, UNITS))]
+
+
+def _pair_batches(prob: RPProblem, x, seed: int, batches: int) -> list:
+    """Look-up arrays of ``batches`` disjoint random groups of whole view pairs
+    (the planes of one pair share their two views' errors); groups under 100
+    planes are left out."""
+    kept = np.flatnonzero(prob.keep)
+    _, inverse = np.unique(prob.vi[kept] * len(prob.R) + prob.vj[kept], return_inverse=True)
+    group = np.random.default_rng(seed).permutation(inverse.max() + 1)[inverse] % batches
+    arrays = [prob._arrays(kept[group == b], x) for b in range(batches)]
+    return [a for a in arrays if len(a[0]) >= 100]
+
+
 def refine(prob: RPProblem, opt: RPOptions, p):
     """Joint Gauss-Newton refinement from ``p`` (planes chosen again at the
     start and once more at the answer, as truncated lines move with the
     geometry). Returns the core's FitResult and the residual scale used."""
-    from ..fit.core import Parameter, solve
+    from ..fit.core import solve
 
     prob.select(p)
     r = prob.residuals(p)
     scale = 1.4826 * float(np.median(np.abs(r - np.median(r)))) or 1.0
     fit = None
     for _ in range(2):
-        params = [Parameter(n, float(p[k]), lower=-1.5 * opt.ranges[n], upper=1.5 * opt.ranges[n], unit=u,
-                            scale=opt.grid_steps[n], undetermined_sigma=opt.undetermined_sigma[n])
-                  for k, (n, u) in enumerate(zip(NAMES, UNITS))]
-        fit = solve(params, lambda x: prob.residuals(x) / scale, lambda x: prob.jacobian(x) / scale,
+        fit = solve(_parameters(opt, p), lambda x: prob.residuals(x) / scale, lambda x: prob.jacobian(x) / scale,
                     scale_covariance=True, max_nfev=50, tol=1e-10, loss=opt.loss, f_scale=3.0)
         p = fit.x
         prob.select(p)
@@ -638,10 +654,8 @@ def finish(prob: RPProblem, opt: RPOptions, fit, scale, grid_best, evals, second
     sigma = np.fmax(np.fmax(np.fmax(np.array(fit.sigma), jack), batch), lumpy)
     res = RPResult(x=x, fit=fit, grid_best=grid_best, evaluations=evals + fit.nfev, planes=dict(prob.last_selection),
                    slices=cost_slices(prob, x, opt), sigma_curvature=np.array(fit.sigma), sigma_jackknife=jack,
-                   sigma=sigma, cost_nominal=prob.cost(np.zeros(5)), cost_final=prob.cost(x), seconds=seconds)
-    res.sigma_batches = batch
-    res.sigma_slices = lumpy
-    res.batch_estimates = spread
+                   sigma=sigma, cost_nominal=prob.cost(np.zeros(5)), cost_final=prob.cost(x), seconds=seconds,
+                   sigma_slices=lumpy, sigma_batches=batch, batch_estimates=spread)
     # A parameter on its search bound was not found, whatever its curvature
     # says; nor are those strongly correlated with it.
     at_bound = [k for k, n in enumerate(NAMES) if abs(x[k]) >= 1.5 * opt.ranges[n] * 0.999]
@@ -664,13 +678,7 @@ def slice_sigma(prob: RPProblem, opt: RPOptions, x, batches: int = 5, n: int = 4
     informative planes); batches of planes then put their minima far apart.
     Each minimum is refined by a parabola through its grid neighbours.
     """
-    kept = np.flatnonzero(prob.keep)
-    pair_id = prob.vi[kept] * len(prob.R) + prob.vj[kept]
-    _, inverse = np.unique(pair_id, return_inverse=True)
-    rng = np.random.default_rng(opt.seed + 11)
-    group = rng.permutation(inverse.max() + 1)[inverse] % batches
-    arrays = [prob._arrays(kept[group == b], x) for b in range(batches)]
-    arrays = [a for a in arrays if len(a[0]) >= 100]
+    arrays = _pair_batches(prob, x, opt.seed + 11, batches)
     out = np.full(5, np.nan)
     if len(arrays) < 3:
         return out
@@ -704,40 +712,21 @@ def batch_sigma(prob: RPProblem, opt: RPOptions, x, scale: float, batches: int =
     Interpolation errors of the tables at strong edges are systematic
     within a plane but differ between planes, and can make the cost of a
     weak parameter (a tilt) lumpy; neither the curvature nor leaving out
-    views sees that. The batch estimates' spread, divided by
-    sqrt(batches - 1) for the mean of ``batches`` batches, does.
+    views sees that. The batch estimates' standard deviation, divided by
+    sqrt(number of batches) for their mean, does.
     Returns (sigma, the batch estimates).
     """
-    from ..fit.core import Parameter, solve
+    from ..fit.core import solve
 
-    kept = np.flatnonzero(prob.keep)
-    pair_id = prob.vi[kept] * len(prob.R) + prob.vj[kept]
-    _, inverse = np.unique(pair_id, return_inverse=True)
-    rng = np.random.default_rng(opt.seed + 7)
-    group = rng.permutation(inverse.max() + 1)[inverse] % batches
     estimates = []
-    for b in range(batches):
-        arrays = prob._arrays(kept[group == b], x)
-        if len(arrays[0]) < 100:
-            continue
-        params = [Parameter(n, float(x[k]), lower=-1.5 * opt.ranges[n], upper=1.5 * opt.ranges[n], unit=u,
-                            scale=opt.grid_steps[n]) for k, (n, u) in enumerate(zip(NAMES, UNITS))]
-        f = solve(params, lambda q: prob.residuals(q, arrays) / scale, lambda q: prob.jacobian(q, arrays) / scale,
-                  max_nfev=15, tol=1e-8, loss=opt.loss, f_scale=3.0)
+    for arrays in _pair_batches(prob, x, opt.seed + 7, batches):
+        f = solve(_parameters(opt, x, undetermined=False), lambda q, a=arrays: prob.residuals(q, a) / scale,
+                  lambda q, a=arrays: prob.jacobian(q, a) / scale, max_nfev=15, tol=1e-8, loss=opt.loss, f_scale=3.0)
         estimates.append(f.x)
     if len(estimates) < 3:
         return np.full(5, np.nan), np.zeros((0, 5))
     est = np.array(estimates)
     return est.std(axis=0, ddof=1) / np.sqrt(len(est)), est
-
-
-def search(prob: RPProblem, opt: RPOptions, progress=None) -> RPResult:
-    """Grids, then a joint refinement, then sigma, on one set of tables."""
-    t0 = time.perf_counter()
-    p, evals = grid_search(prob, opt, progress)
-    t1 = time.perf_counter()
-    fit, scale = refine(prob, opt, p)
-    return finish(prob, opt, fit, scale, p, evals, {"grid": t1 - t0, "refine": time.perf_counter() - t1})
 
 
 def jackknife_sigma(prob: RPProblem, x, scale: float, groups: int = 12) -> np.ndarray:
