@@ -125,21 +125,9 @@ def sharpness_search(scan, truth, target_err, budget=150, views_step=4):
 
 
 def save_slices(vols, names, path):
-    import matplotlib
+    from conecal.report.plots import slices
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    fig, axes = plt.subplots(1, len(vols), figsize=(3.2 * len(vols), 3.4))
-    lo = min(float(np.percentile(v, 1)) for v in vols)
-    hi = max(float(np.percentile(v, 99.5)) for v in vols)
-    for ax, v, n in zip(axes, vols, names):
-        ax.imshow(v[v.shape[0] // 2], cmap="gray", vmin=lo, vmax=hi)
-        ax.set_title(n, fontsize=9)
-        ax.axis("off")
-    fig.tight_layout()
-    fig.savefig(path, dpi=90)
-    plt.close(fig)
+    Path(path).write_bytes(slices([v[v.shape[0] // 2] for v in vols], names))
 
 
 def main(argv=None):

@@ -13,6 +13,11 @@ from ..kinematics import LinearAxis, RotaryAxis
 from .base import Effect, World, register
 
 
+def _ramp(world: World, velocity) -> np.ndarray:
+    """(n, 3) offsets growing linearly from the scan's start at ``velocity`` (mm/s)."""
+    return (world.times - world.times[0])[:, None] * np.asarray(velocity, dtype=float).reshape(3)
+
+
 def _axis(world: World, name: str):
     if world.chain is None:
         raise InputError(f"effect needs a chain of axes; this scan has none (axis {name!r})")
@@ -33,8 +38,7 @@ class FocalSpotDrift(Effect):
     units = {"velocity": "mm/s"}
 
     def apply(self, world):
-        v = np.asarray(self.velocity, dtype=float).reshape(3)
-        return world.replace(source_offsets=world.source_offsets + (world.times - world.times[0])[:, None] * v)
+        return world.replace(source_offsets=world.source_offsets + _ramp(world, self.velocity))
 
 
 @register
@@ -143,8 +147,7 @@ class DetectorDrift(Effect):
     units = {"velocity": "mm/s"}
 
     def apply(self, world):
-        v = np.asarray(self.velocity, dtype=float).reshape(3)
-        return world.replace(detector_offsets=world.detector_offsets + (world.times - world.times[0])[:, None] * v)
+        return world.replace(detector_offsets=world.detector_offsets + _ramp(world, self.velocity))
 
 
 @register
