@@ -60,13 +60,10 @@ def judge(x, sigma, truth):
     return err, np.array(ok)
 
 
-def fdk_slices(scan, p, views_step=1, size=(160, 160, 5), spacing=0.25):
-    from conecal.export.rtk import fdk
+def fdk_slices(scan, p, size=(160, 160, 5), spacing=0.25):
+    from conecal.export.rtk import fdk_scan
 
-    frames = [int(k) for k in scan.log.frame][::views_step]
-    T = scan.nominal_transforms()[np.arange(0, scan.n_frames, views_step)]
-    stack = np.stack([scan.stack.read(k) for k in frames])
-    return fdk(stack, per_view(misaligned(scan.nominal_geometry(), p), T), size=size, spacing=spacing)
+    return fdk_scan(scan, [misaligned(scan.nominal_geometry(), p)], size=size, spacing=spacing)[0]
 
 
 def sharpness_search(scan, truth, target_err, budget=150, views_step=4):

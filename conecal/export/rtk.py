@@ -120,6 +120,17 @@ def fdk(projections: np.ndarray, views: list[ConeGeometry], *, size, spacing, or
     return np.asarray(itk.array_from_image(f.GetOutput())).copy()
 
 
+def fdk_scan(scan, geometries: list[ConeGeometry], *, step: int = 1, size, spacing, origin=None) -> list[np.ndarray]:
+    """FDK of a scan's frames (every ``step``-th) with each lab geometry in
+    ``geometries`` and the scan's nominal motion; the frames are read once."""
+    from . import per_view
+
+    idx = np.arange(0, scan.n_frames, step)
+    stack = np.stack([scan.stack.read(int(scan.log.frame[k])) for k in idx])
+    T = scan.nominal_transforms()[idx]
+    return [fdk(stack, per_view(g, T), size=size, spacing=spacing, origin=origin) for g in geometries]
+
+
 def sharpness(volume: np.ndarray) -> float:
     """Gradient energy over signal energy of a reconstruction (1/voxel^2):
     doubled or smeared edges lower it."""

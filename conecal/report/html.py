@@ -138,27 +138,23 @@ def reconstruction_figure(doc) -> tuple[bytes, dict] | None:
     central slices and their sharpness. None when not possible here."""
     from ..consistency.misalignment import NAMES, misaligned
     from ..errors import InputError
-    from ..export import per_view
     from ..scan import load_scan
 
     if doc.get("stage") != "rp-grid":
         return None
     try:
-        from ..export.rtk import fdk, sharpness
+        from ..export.rtk import fdk_scan, sharpness
 
         scan = load_scan(doc["scan"])
     except (InputError, KeyError):
         return None
-    step = max(1, scan.n_frames // 180)
-    idx = np.arange(0, scan.n_frames, step)
-    stack = np.stack([scan.stack.read(int(scan.log.frame[k])) for k in idx])
-    T = scan.nominal_transforms()[idx]
     nominal = scan.nominal_geometry()
     p = np.array([doc["misalignment"][n]["value"] for n in NAMES])
     rows, cols = nominal.shape
     vox = nominal.pixel_pitch[0] * np.linalg.norm(nominal.source) / nominal.sdd
     n = int(min(rows, cols) * 0.7)
-    vols = [fdk(stack, per_view(misaligned(nominal, q), T), size=(n, n, 3), spacing=vox) for q in (np.zeros(5), p)]
+    vols = fdk_scan(scan, [misaligned(nominal, q) for q in (np.zeros(5), p)], step=max(1, scan.n_frames // 180),
+                    size=(n, n, 3), spacing=vox)
     sh = [sharpness(v) for v in vols]
     png = plots.slices([v[1] for v in vols], [f"nominal geometry (sharpness {sh[0]:.4f})",
                                              f"rp-grid geometry (sharpness {sh[1]:.4f})"])
