@@ -79,23 +79,17 @@ def candidates(model) -> list[Candidate]:
                                  lambda x, n=a.name: RotaryWobble(n, float(np.hypot(*x)), float(np.degrees(np.arctan2(x[1], x[0])))),
                                  lambda x, s, n=a.name: f"axis {n} wobbles by {np.hypot(*x):.4f} ± {np.hypot(*s) / np.sqrt(2):.4f} deg "
                                                         f"once per turn (phase {np.degrees(np.arctan2(x[1], x[0])):.0f} deg)"))
-        if np.ptp(v) > 0 or np.abs(v).max() > 0:
-            out.append(Candidate(f"encoder_latency", ("latency",), ("s",), (0.005,),
-                                 lambda x: EncoderLatency(float(x[0])),
-                                 lambda x, s: f"frames were exposed {1e3 * x[0]:+.1f} ± {1e3 * s[0]:.1f} ms after the "
-                                              "encoders were read (error ∝ velocity)"))
         if (v > 0).any() and (v < 0).any():
             out.append(Candidate(f"backlash:{a.name}", ("amount",), (unit,), (0.005,),
                                  lambda x, n=a.name: Backlash(n, float(x[0])),
                                  lambda x, s, n=a.name, u=unit: f"axis {n} has {x[0]:+.4f} ± {s[0]:.4f} {u} backlash "
                                                                 "(error follows the direction of motion)"))
-    # latency is one effect for all axes together
-    seen, uniq = set(), []
-    for c in out:
-        if c.label not in seen:
-            seen.add(c.label)
-            uniq.append(c)
-    return uniq
+    if moving:   # one latency for every axis: the encoders are read together
+        out.append(Candidate("encoder_latency", ("latency",), ("s",), (0.005,),
+                             lambda x: EncoderLatency(float(x[0])),
+                             lambda x, s: f"frames were exposed {1e3 * x[0]:+.1f} ± {1e3 * s[0]:.1f} ms after the "
+                                          "encoders were read (error ∝ velocity)"))
+    return out
 
 
 def _fit(model, cands, select=None, x0=None):
