@@ -86,3 +86,14 @@ def test_compressed_stack_with_forked_workers(small_linear_scan, tmp_path):
     assert json.dumps(a, sort_keys=True) == json.dumps(b, sort_keys=True)
     ref = detect_scan(load_scan(small_linear_scan), opt, workers=1)
     assert [m["x"] for f in a["frames"] for m in f["markers"]] == [m["x"] for f in ref["frames"] for m in f["markers"]]
+
+
+def test_lag_correction_removes_the_previous_frame():
+    """detect --lag: T = (T_rec - lag T_prev) / (1 - lag) undoes a lag ghost exactly."""
+    from conecal.detect.pipeline import lag_corrected
+
+    rng = np.random.default_rng(1)
+    a_prev, a_now = rng.uniform(0, 2, (2, 32, 32))
+    lag = 0.05
+    rec = -np.log((1 - lag) * np.exp(-a_now) + lag * np.exp(-a_prev))
+    assert np.abs(lag_corrected(rec.astype(np.float32), a_prev.astype(np.float32), lag) - a_now).max() < 1e-5

@@ -16,7 +16,8 @@ def world():
 
 
 def test_registry_has_the_required_effects():
-    for name in ("focal_spot_drift", "axis_scale", "axis_nonorthogonality", "rotary_wobble", "encoder_latency"):
+    for name in ("focal_spot_drift", "axis_scale", "axis_nonorthogonality", "rotary_wobble", "encoder_latency",
+                 "detector_drift", "backlash", "blur", "beam_hardening", "detector_lag", "scatter", "detector_distortion"):
         assert name in REGISTRY
         assert REGISTRY[name].physics
 
@@ -56,3 +57,38 @@ def test_bad_effect_specs_are_input_errors():
         parse_effect("axis_scale:bogus=1")
     with pytest.raises(InputError, match="no axis"):
         parse_effect("axis_scale:axis=w").apply(world())
+
+
+def test_distortion_round_trip_and_rendered_shadow_moves_with_it():
+    """undistort inverts distort; a rendered sphere's shadow centroid lands
+    where Imaging.distort sends the undistorted one (the simulator's truth)."""
+    from conecal.effects import Imaging
+    from conecal.geometry import ConeGeometry
+    from conecal.simulate.render import Sphere, render_line_integrals
+
+    im = Imaging(radial_px=2.0, s_px=-1.5)
+    shape = (200, 240)
+    xy = np.random.default_rng(0).uniform(0, 200, (50, 2))
+    assert np.abs(im.undistort(im.distort(xy, shape), shape) - xy).max() < 1e-6
+    corner = np.array([0.0, 0.0])
+    assert np.hypot(*(im.distort(corner, shape) - corner)) == pytest.approx(np.hypot(2.0, 1.5))
+    g = ConeGeometry.nominal(sod=100, sdd=400, shape=shape, pixel_pitch=(0.2, 0.2))
+    X = np.array([-4.0, 3.0, 0.0])
+    img = render_line_integrals(g, [Sphere(X, 0.5, 1.0)], ss=4, distortion=im)
+    rr, cc = np.mgrid[0:shape[0], 0:shape[1]]
+    centroid = np.array([(img * cc).sum(), (img * rr).sum()]) / img.sum()
+    plain = render_line_integrals(g, [Sphere(X, 0.5, 1.0)], ss=4)
+    c0 = np.array([(plain * cc).sum(), (plain * rr).sum()]) / plain.sum()
+    assert np.abs(centroid - im.distort(c0, shape)).max() < 0.02
+    assert np.abs(centroid - c0).max() > 0.3
+
+
+def test_image_effects_set_the_imaging_record():
+    w = world()
+    for spec, field, value in [("blur:sigma_px=0.3", "extra_blur_px", 0.3), ("beam_hardening:beta=0.1", "beam_hardening", 0.1),
+                               ("detector_lag:fraction=0.04", "lag", 0.04), ("scatter:fraction=0.02", "scatter", 0.02)]:
+        assert getattr(parse_effect(spec).apply(w).imaging, field) == pytest.approx(value)
+    with pytest.raises(InputError):
+        parse_effect("detector_lag:fraction=1.5").apply(w)
+    with pytest.raises(InputError):
+        parse_effect("scatter:fraction=-0.1").apply(w)

@@ -20,7 +20,10 @@ from .options import info, output_option, progress_bar, workers_option
               help="Expected system blur (Gaussian sigma, px); widens the windows.")
 @click.option("--diameter-px", type=(float, float), default=None, metavar="MIN MAX",
               help="Shadow diameters to look for (px); default from markers.diameter and the nominal magnification.")
-def command(scan, output, workers, threshold, blur_px, diameter_px):
+@click.option("--lag", type=click.FloatRange(0, 0.9), default=0.0, show_default=True,
+              help="Detector lag to remove first: the fraction of the previous frame's intensity each frame "
+                   "keeps (as `diagnose` reports it).")
+def command(scan, output, workers, threshold, blur_px, diameter_px, lag):
     """Find calibration spheres in every projection of SCAN.
 
     Writes conecal-markers/1: per frame, each marker's centre (x = column,
@@ -31,13 +34,14 @@ def command(scan, output, workers, threshold, blur_px, diameter_px):
     Examples:
       conecal detect demo/linear -o demo/markers.json
       conecal detect scans/hexapod --diameter-px 30 60 -o markers.json
+      conecal detect demo/rot --lag 0.046 -o markers.json   # after diagnose found lag
     """
     s = load_scan(scan)
     if diameter_px is not None and not 0 < diameter_px[0] < diameter_px[1]:
         raise click.BadParameter("need 0 < MIN < MAX", param_hint="--diameter-px")
     opt = options_for_scan(s, threshold=threshold, blur_px=blur_px, diameter_px=diameter_px)
     with progress_bar("detect") as prog:
-        doc = detect_scan(s, opt, workers=workers, progress=prog)
+        doc = detect_scan(s, opt, workers=workers, lag=lag, progress=prog)
     write_json(output, doc)
     n = sum(len(f["markers"]) for f in doc["frames"])
     flagged = sum(1 for f in doc["frames"] for m in f["markers"] if m["flags"])

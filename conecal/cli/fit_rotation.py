@@ -65,6 +65,7 @@ def command(scans, markers, geometry, output, refine_geometry, loss, use_flagged
     for k, ((scan_k, sid), p) in enumerate(zip(fit.sphere_labels, fit.spheres)):
         ref = k in fit.model.references
         spheres.append({"scan": str(scans[scan_k]), "id": sid, "position": p, "reference": ref,
+                        "diameter": float(2 * fit.model.radii[k]),
                         "sigma": [0.0, 0.0, 0.0] if ref else [sig[f"sphere{k}_{c}"] for c in "xyz"]})
     residuals = [{"scan": str(scans[k]), "frame": int(f), "id": int(i), "x": float(xy[0]), "y": float(xy[1]),
                   "dx": float(d[0]), "dy": float(d[1]), "sigma": float(sg)}

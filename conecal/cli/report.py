@@ -120,6 +120,10 @@ def command(results, out_dir, reconstruct):
             console.print(f"[bold]{path}[/] — diagnose: {doc['verdict']}")
             console.print(f"  residual RMS {doc['rms_px_before']:.4f} -> {doc['rms_px_after']:.4f} px "
                           f"(noise floor {doc['noise_floor_px']:.4f} px)")
+            img = doc.get("image_level") or {}
+            if "chi2_per_dof_before" in img:
+                console.print(f"  image level: chi2/dof {img['chi2_per_dof_before']:.4f} -> "
+                              f"{img['chi2_per_dof_after']:.4f} over {img['n_patches']} marker patches")
             continue
         if doc["format"].startswith("conecal-poses"):
             _report_poses(console, path, doc)

@@ -67,14 +67,28 @@ def kinematic_predictor(scan: Scan):
     return predict
 
 
-def detect_scan(scan: Scan, opt: DetectOptions, *, workers: int = 2,
+def lag_corrected(a: np.ndarray, previous: np.ndarray, lag: float) -> np.ndarray:
+    """Attenuation of a frame with a fraction ``lag`` of the previous frame's
+    intensity removed: ``T = (T_rec - lag T_prev) / (1 - lag)`` (one step of
+    the recursion; the error is of order lag^2)."""
+    T = (np.exp(-a.astype(np.float64)) - lag * np.exp(-previous.astype(np.float64))) / (1.0 - lag)
+    return (-np.log(np.maximum(T, 1e-6))).astype(np.float32)
+
+
+def detect_scan(scan: Scan, opt: DetectOptions, *, workers: int = 2, lag: float = 0.0,
                 progress: Callable[[int, int], None] | None = None) -> dict:
     """Detect, filter and track markers in every frame; returns a
-    ``conecal-markers/1`` document (frames in log order)."""
+    ``conecal-markers/1`` document (frames in log order). ``lag``: remove
+    that fraction of the previous frame (in time) from each frame first, as
+    ``diagnose`` measures it."""
     frames_idx = [int(f) for f in scan.log.frame]
+    order = np.argsort(np.asarray(scan.log.time, float), kind="stable")
+    previous = {frames_idx[order[i]]: frames_idx[order[i - 1]] for i in range(1, len(order))}
 
     def one(k):
         a = scan.stack.read(k, check=False)
+        if lag and k in previous:
+            a = lag_corrected(a, scan.stack.read(previous[k], check=False), lag)
         try:
             return detect_frame(a, opt)
         except NonFiniteFrame:

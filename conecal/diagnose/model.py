@@ -24,6 +24,25 @@ from ..geometry import ConeGeometry
 from ..kinematics import RotaryAxis
 
 
+@dataclass(frozen=True, eq=False)
+class CentroidPull:
+    """What detector lag does to a measured centre: the ghost of the previous
+    frame pulls it a fraction ``pull`` of the way back to where the marker
+    was then (``detect``'s window sees both). Moves nothing in the world."""
+
+    pull: float
+    name = "detector_lag"
+
+    @property
+    def physics(self) -> str:
+        from ..effects.imaging import DetectorLag
+
+        return DetectorLag.physics
+
+    def apply(self, world):
+        return world
+
+
 @dataclass
 class Observations:
     row: np.ndarray        # (m,) index into the scan's log rows
@@ -63,6 +82,10 @@ class ResultModel:
         if missing:
             raise InputError(f"{scan.root / 'log.csv'}: no column for axis {missing[0]!r} of {path}")
         self.times = np.asarray(scan.log.time, float)
+        # the row exposed just before each row (itself for the first)
+        order = np.argsort(self.times, kind="stable")
+        self.previous_row = np.empty(len(order), int)
+        self.previous_row[order] = np.concatenate([order[:1], order[:-1]])
         self.readings = np.column_stack([scan.log.column(a) for a in self.chain.names])
         spheres = {}
         if stage == "fit-rotation":
@@ -160,7 +183,16 @@ class ResultModel:
         S = g.source + w.source_offsets[rows]
         det = w.detector_offsets[rows] if w.detector_offsets is not None else 0.0
         O = g.detector_origin + det
-        return _project(S, O, g.u, g.v, g.normal, g.pixel_pitch, X) + self.offset[idx]
+        xy = w.imaging.distort(_project(S, O, g.u, g.v, g.normal, g.pixel_pitch, X), g.shape)
+        pull = sum(e.pull for e in (effects or ()) if isinstance(e, CentroidPull))
+        if pull:
+            prev = self.previous_row[rows]
+            Xp = np.einsum("mij,mj->mi", T.R[prev], points[idx]) + T.t[prev]
+            Sp = g.source + w.source_offsets[prev]
+            Op = g.detector_origin + (w.detector_offsets[prev] if w.detector_offsets is not None else 0.0)
+            xyp = w.imaging.distort(_project(Sp, Op, g.u, g.v, g.normal, g.pixel_pitch, Xp), g.shape)
+            xy = xy + pull * (xyp - xy)
+        return xy + self.offset[idx]
 
     def geometry_after(self, base) -> ConeGeometry:
         return self._apply_base(np.asarray(base, float))[1]

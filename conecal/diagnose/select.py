@@ -19,8 +19,10 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.optimize import least_squares
 
+from ..effects.imaging import DetectorDistortion
 from ..effects.motion import AxisNonOrthogonality, AxisScale, Backlash, DetectorDrift, EncoderLatency, FocalSpotDrift, RotaryWobble
 from ..kinematics import LinearAxis, RotaryAxis
+from .model import CentroidPull
 from .structure import structure_tests
 
 
@@ -56,6 +58,14 @@ def candidates(model) -> list[Candidate]:
                          lambda x: DetectorDrift(tuple(x)),
                          lambda x, s: "the detector drifted (" + ", ".join(
                              f"{a} {1e3 * v:+.3f} ± {1e3 * e:.3f} µm/s" for a, v, e in zip("xyz", x, s)) + ")"))
+    out.append(Candidate("detector_distortion:radial", ("radial_px",), ("px",), (0.05,),
+                         lambda x: DetectorDistortion(float(x[0]), 0.0),
+                         lambda x, s: f"the detector image is warped radially by {x[0]:+.3f} ± {s[0]:.3f} px at its "
+                                      "corner (pincushion > 0)"))
+    out.append(Candidate("detector_distortion:s_shaped", ("s_px",), ("px",), (0.05,),
+                         lambda x: DetectorDistortion(0.0, float(x[0])),
+                         lambda x, s: f"the detector image is S-shaped: twisted by {x[0]:+.3f} ± {s[0]:.3f} px at its "
+                                      "corner (counter-clockwise > 0), as an image intensifier in a magnetic field"))
     moving = _moving(model)
     axes = model.chain.axes
     for k in moving:
@@ -84,6 +94,11 @@ def candidates(model) -> list[Candidate]:
                                  lambda x, n=a.name: Backlash(n, float(x[0])),
                                  lambda x, s, n=a.name, u=unit: f"axis {n} has {x[0]:+.4f} ± {s[0]:.4f} {u} backlash "
                                                                 "(error follows the direction of motion)"))
+    if moving:   # a lag ghost drags each centre back towards the previous frame's
+        out.append(Candidate("detector_lag", ("pull",), ("",), (0.005,),
+                             lambda x: CentroidPull(float(x[0])),
+                             lambda x, s: f"each measured centre is pulled {100 * x[0]:+.2f} ± {100 * s[0]:.2f} % of "
+                                          "the way back to the previous frame's (a lag ghost of the previous frame)"))
     if moving:   # one latency for every axis: the encoders are read together
         out.append(Candidate("encoder_latency", ("latency",), ("s",), (0.005,),
                              lambda x: EncoderLatency(float(x[0])),
@@ -122,16 +137,17 @@ def _fit(model, cands, select=None, x0=None):
     return res.x, np.sqrt(np.clip(np.diag(cov), 0, None)), chi2, split
 
 
-def _heldout(model, cands) -> float:
-    """Two-fold held-out chi^2: fit on even frames, score odd ones, and back."""
+def _heldout(model, cands) -> np.ndarray:
+    """Two-fold held-out squared whitened residuals: fit on even frames,
+    score odd ones, and back; (m,) per observation, in observation order."""
     even = model.obs.row % 2 == 0
-    total = 0.0
+    out = np.zeros(len(even))
     for train in (even, ~even):
         x, _, _, split = _fit(model, cands, train)
         x9, effs = split(x)
-        r = model.whitened(effs, x9, ~train)
-        total += float(r @ r)
-    return total
+        r = model.whitened(effs, x9, ~train).reshape(-1, 2)
+        out[~train] = np.sum(r * r, axis=1)
+    return out
 
 
 def evaluate(model, cands) -> dict:
@@ -139,12 +155,50 @@ def evaluate(model, cands) -> dict:
     n = 2 * len(model.obs.row)
     k = len(x)
     x9, effs = split(x)
+    r2 = _heldout(model, cands)
     return {"cands": cands, "x": x, "sigma": sig, "chi2": chi2, "bic": chi2 + k * np.log(n),
-            "heldout": _heldout(model, cands), "x9": x9, "effects": effs}
+            "heldout": float(r2.sum()), "heldout_r2": r2, "x9": x9, "effects": effs}
 
 
-def diagnose(model, *, alpha: float = 0.01, progress=None) -> dict:
-    """The whole decision; returns a plain dict (JSON-ready) and the chosen evaluation."""
+def score(base: dict, e: dict, k: int) -> dict:
+    """How much a candidate with ``k`` more parameters beats ``base``; the claim rule."""
+    gain = float(base["heldout"] - e["heldout"])
+    bic = float(base["bic"] - e["bic"])
+    return {"heldout_gain_chi2": gain, "bic_gain": bic, "claimable": bool(gain > max(10.0, 3 * k) and bic > 10.0)}
+
+
+def rank(rows: list[dict], heldout_r2: dict) -> tuple[list[dict], list[str]]:
+    """Sort candidate rows by held-out gain (in place); return the claimable
+    ones, best first, and the labels of those the held-out data cannot tell
+    from the best: a paired comparison of their held-out squared residuals
+    (``heldout_r2``: label -> per-observation array) whose difference is
+    within two standard errors (and at least 3). Each row gets
+    ``behind_best_chi2`` and its standard error."""
+    rows.sort(key=lambda r: -r["heldout_gain_chi2"])
+    claimed = [r for r in rows if r["claimable"]]
+    if not claimed:
+        return [], []
+    best = claimed[0]
+    ambiguous = []
+    for r in claimed[1:]:
+        d = heldout_r2[r["effect"]] - heldout_r2[best["effect"]]
+        se = float(np.sqrt(len(d) * d.var())) if len(d) > 1 else 0.0
+        r["behind_best_chi2"], r["behind_best_stderr"] = float(d.sum()), se
+        if d.sum() < max(3.0, 2 * se):
+            ambiguous.append(r["effect"])
+    return claimed, ambiguous
+
+
+def diagnose(model, *, alpha: float = 0.01, progress=None, tie_breaker=None) -> dict:
+    """The whole decision; returns a plain dict (JSON-ready) and the chosen evaluation.
+
+    ``tie_breaker``: when the marker positions cannot tell the best effect
+    from others, a callable ``{label: evaluation} -> {label: chi2}`` of
+    other evidence per item (the image level: chi^2 of each marker patch
+    rendered from each one's scene); the lowest total wins, and the others
+    stay ambiguous unless it beats them by more than two standard errors of
+    the paired difference (and 10).
+    """
     base = evaluate(model, [])
     r0 = model.whitened(None, np.zeros(model.n_base))
     tests_before = structure_tests(model, r0, alpha)
@@ -154,23 +208,28 @@ def diagnose(model, *, alpha: float = 0.01, progress=None) -> dict:
     for i, c in enumerate(cands):
         e = evaluate(model, [c])
         evals[c.label] = e
-        gain = base["heldout"] - e["heldout"]
         nb = model.n_base
         rows.append({"effect": c.label, "parameters": dict(zip(c.names, e["x"][nb:].tolist())),
-                     "sigma": dict(zip(c.names, e["sigma"][nb:].tolist())),
-                     "heldout_gain_chi2": gain, "bic_gain": base["bic"] - e["bic"],
-                     "claimable": bool(gain > max(10.0, 3 * c.k) and base["bic"] - e["bic"] > 10.0)})
+                     "sigma": dict(zip(c.names, e["sigma"][nb:].tolist())), **score(base, e, c.k)})
         if progress:
             progress(i + 1, len(cands) + 1)
-    rows.sort(key=lambda r: -r["heldout_gain_chi2"])
-    claimed = [r for r in rows if r["claimable"]]
+    claimed, ambiguous = rank(rows, {k: e["heldout_r2"] for k, e in evals.items()})
     chosen = []
-    ambiguous = []
+    tie = None
+    if claimed and ambiguous and tie_breaker is not None:
+        labels = [claimed[0]["effect"]] + ambiguous[:5]
+        per = tie_breaker({k: evals[k] for k in labels})
+        tie = {k: float(np.sum(v)) for k, v in per.items()}
+        winner = min(tie, key=tie.get)
+        ambiguous = []
+        for k in labels:
+            d = per[k] - per[winner]
+            if k != winner and d.sum() < max(10.0, 2 * np.sqrt(len(d) * d.var())):
+                ambiguous.append(k)
+        claimed = [r for r in claimed if r["effect"] == winner] + [r for r in claimed if r["effect"] != winner]
     if claimed:
         best = claimed[0]
         chosen = [best["effect"]]
-        margin = max(3.0, 0.05 * best["heldout_gain_chi2"])
-        ambiguous = [r["effect"] for r in claimed[1:] if best["heldout_gain_chi2"] - r["heldout_gain_chi2"] < margin]
         e_best = evals[best["effect"]]
         after = structure_tests(model, model.whitened(e_best["effects"], e_best["x9"]), alpha)
         if any(t["significant"] for t in after):
@@ -179,11 +238,12 @@ def diagnose(model, *, alpha: float = 0.01, progress=None) -> dict:
             by = {c.label: c for c in cands}
             for r in claimed[1:4]:
                 e2 = evaluate(model, [by[best["effect"]], by[r["effect"]]])
-                gain = e_best["heldout"] - e2["heldout"]
-                if gain > max(10.0, 3 * by[r["effect"]].k) and e_best["bic"] - e2["bic"] > 10 and gain > best_gain:
-                    best_pair, best_gain = (r["effect"], e2), gain
+                sc = score(e_best, e2, by[r["effect"]].k)
+                if sc["claimable"] and sc["heldout_gain_chi2"] > best_gain:
+                    best_pair, best_gain = (r["effect"], e2), sc["heldout_gain_chi2"]
             if best_pair is not None:
                 chosen.append(best_pair[0])
+                ambiguous = [a for a in ambiguous if a != best_pair[0]]
                 evals["+".join(chosen)] = best_pair[1]
     final = evals["+".join(chosen)] if chosen else base
     r_after = model.whitened(final["effects"], final["x9"])
@@ -216,6 +276,7 @@ def diagnose(model, *, alpha: float = 0.01, progress=None) -> dict:
         "rms_px_after": float(np.sqrt(np.mean(px_after ** 2))),
         "noise_floor_px": noise,
         "heldout_gain_chi2": float(base["heldout"] - final["heldout"]) if chosen else 0.0,
+        "image_tie_break_chi2": tie,
         "n_observations": int(len(model.obs.row)),
         "base_parameters": dict(zip(model.base_names, final["x9"].tolist())),
         "observations": {"frame": model.obs.frame.tolist(), "id": model.obs.ids.tolist(),

@@ -34,7 +34,9 @@ class World:
     frame was exposed; chain : the true axes (None for a robot);
     robot_transforms : true holder-to-lab transforms (robot scans);
     source_offsets : (n, 3) mm added to the true focal-spot position;
-    detector_offsets : (n, 3) mm added to the true detector position.
+    detector_offsets : (n, 3) mm added to the true detector position;
+    imaging : how the detector records (blur, beam hardening, lag, scatter,
+    distortion) beyond the line-integral model.
     """
 
     times: np.ndarray
@@ -44,13 +46,16 @@ class World:
     robot_transforms: RigidTransform | None
     source_offsets: np.ndarray
     detector_offsets: np.ndarray = None
+    imaging: "Imaging" = None
 
     @classmethod
     def start(cls, times, readings, chain=None, robot_transforms=None) -> "World":
         times = np.asarray(times, dtype=float)
         readings = np.asarray(readings, dtype=float)
+        from .imaging import Imaging
+
         return cls(times, readings, readings.copy(), chain, robot_transforms, np.zeros((len(times), 3)),
-                   np.zeros((len(times), 3)))
+                   np.zeros((len(times), 3)), Imaging())
 
     def transforms(self) -> RigidTransform:
         """True sample-to-lab transform per frame."""

@@ -130,7 +130,22 @@ def _diagnosis_section(path, doc) -> tuple[str, int]:
                  + rows + "</table>")
     png = plots.diagnosis(doc)
     parts.append(_figure(png, "Residuals against time before and after modelling the effect (dashed: ±2σ noise)."))
-    return "\n".join(parts), int(png is not None)
+    n = int(png is not None)
+    img = doc.get("image_level") or {}
+    if img.get("candidates"):
+        rows = "".join(f"<tr><td>{html.escape(c['effect'])}</td><td class=num>{c['heldout_gain_chi2']:.1f}</td>"
+                       f"<td class=num>{c['bic_gain']:.1f}</td><td>{'yes' if c['claimable'] else ''}</td></tr>"
+                       for c in img["candidates"])
+        parts.append(f"<h3>Image level</h3><p>{html.escape(img.get('verdict', ''))}; {img.get('n_patches', 0)} "
+                     f"marker patches, noise {img.get('noise_floor_attenuation', 0):.4f} (attenuation).</p>"
+                     "<table><tr><th>candidate</th><th>held-out χ² gain</th><th>BIC gain</th><th>beats noise</th></tr>"
+                     + rows + "</table>")
+        png2 = plots.image_profiles(doc)
+        if png2 is not None:
+            parts.append(_figure(png2, "Recorded minus rendered shadow against distance from its centre, before and "
+                                       "after modelling the image effect (bars: ±2 standard errors)."))
+            n += 1
+    return "\n".join(parts), n
 
 
 def reconstruction_figure(doc) -> tuple[bytes, dict] | None:

@@ -209,6 +209,28 @@ def diagnosis(doc) -> bytes | None:
     return _png(fig)
 
 
+def image_profiles(doc) -> bytes | None:
+    """diagnose, image level: mean recorded minus modelled attenuation against
+    distance from the shadow centre (in shadow radii), before and after."""
+    img = doc.get("image_level") or {}
+    before, after = img.get("radial_residual_before"), img.get("radial_residual_after")
+    if not before or not after:
+        return None
+    plt = _plt()
+    fig, ax = plt.subplots(figsize=(6, 3.3))
+    for prof, label, fmt in ((before, f"line-integral model (χ²/dof {img['chi2_per_dof_before']:.3f})", "o-"),
+                             (after, f"with the effect found (χ²/dof {img['chi2_per_dof_after']:.3f})", "s-")):
+        r, m, e = (np.asarray(prof[k], float) for k in ("radius", "mean", "stderr"))
+        ax.errorbar(r, m, yerr=2 * e, fmt=fmt, ms=3, capsize=2, label=label)
+    ax.axhline(0, color="k", lw=0.5)
+    ax.axvline(1, color="grey", lw=0.5, ls=":")
+    ax.set_xlabel("distance from the shadow centre (shadow radii)")
+    ax.set_ylabel("recorded − model (attenuation)")
+    ax.set_title(img.get("verdict", "")[:90], fontsize=8)
+    ax.legend(fontsize=7)
+    return _png(fig)
+
+
 def convergence(doc) -> bytes | None:
     """chi^2 at each function evaluation of the solver."""
     h = (doc.get("fit") or {}).get("chi2_history")

@@ -50,6 +50,14 @@ class MarkerSpec(_Model):
     diameters: tuple[PositiveFloat, ...] | None = None
 
 
+class ImagingSpec(_Model):
+    """Optional extension: what the system's specification says about its image."""
+
+    # Gaussian sigma (px) of focal-spot plus detector blur; diagnose compares
+    # the recorded edges with it
+    blur_px: Annotated[float, Field(ge=0, allow_inf_nan=False)] | None = None
+
+
 class AxisSpec(_Model):
     name: Annotated[str, Field(pattern=r"^[A-Za-z_][A-Za-z0-9_]*$")]
     type: Literal["linear", "rotary"]
@@ -110,6 +118,7 @@ class ScanConfig(_Model):
     markers: MarkerSpec | None = None
     axes: tuple[AxisSpec, ...] = ()
     robot: RobotSpec | None = None
+    imaging: ImagingSpec | None = None
 
     @field_validator("format")
     @classmethod

@@ -95,9 +95,14 @@ def _chord(obj, S: np.ndarray, w: np.ndarray) -> np.ndarray:
 
 
 def render_line_integrals(geometry: ConeGeometry, solids, ss: int = 3, out: np.ndarray | None = None,
-                          margin: float = 2.0) -> np.ndarray:
+                          margin: float = 2.0, distortion=None) -> np.ndarray:
     """Add ``mu * chord`` of every solid, pixel-averaged over ss x ss rays, to ``out``
-    (float64 (rows, cols), created if None) and return it."""
+    (float64 (rows, cols), created if None) and return it.
+
+    ``distortion``: an :class:`~conecal.effects.Imaging` whose detector
+    distortion warps the image (each pixel sees the ray of its undistorted
+    position)."""
+    warp = distortion is not None and distortion.distorted
     rows, cols = geometry.shape
     if out is None:
         out = np.zeros((rows, cols))
@@ -105,6 +110,8 @@ def render_line_integrals(geometry: ConeGeometry, solids, ss: int = 3, out: np.n
     S = geometry.source
     for obj in solids:
         corners = geometry.project(_bbox_corners(obj))
+        if warp:
+            corners = distortion.distort(corners, geometry.shape)
         c0 = int(max(np.floor(corners[:, 0].min() - margin), 0))
         c1 = int(min(np.ceil(corners[:, 0].max() + margin), cols - 1))
         r0 = int(max(np.floor(corners[:, 1].min() - margin), 0))
@@ -114,7 +121,12 @@ def render_line_integrals(geometry: ConeGeometry, solids, ss: int = 3, out: np.n
         cc = (np.arange(c0, c1 + 1)[:, None] + sub[None, :]).reshape(-1)
         rr = (np.arange(r0, r1 + 1)[:, None] + sub[None, :]).reshape(-1)
         # rays in row-major order over the (rows*ss, cols*ss) sub-grid
-        D = geometry.detector_point(cc[None, :], rr[:, None]).reshape(-1, 3)
+        if warp:
+            grid = np.stack(np.broadcast_arrays(cc[None, :], rr[:, None]), axis=-1)
+            ideal = distortion.undistort(grid, geometry.shape)
+            D = geometry.detector_point(ideal[..., 0], ideal[..., 1]).reshape(-1, 3)
+        else:
+            D = geometry.detector_point(cc[None, :], rr[:, None]).reshape(-1, 3)
         w = D - S
         w /= np.linalg.norm(w, axis=1, keepdims=True)
         L = obj.mu * _chord(obj, S, w)

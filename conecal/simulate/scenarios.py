@@ -327,8 +327,9 @@ def marker_truth(sc: Scenario, k: int, T: RigidTransform) -> list[dict]:
     rows, cols = g.shape
     for sid, p, r in zip(sc.sphere_ids, sc.sphere_positions, sc.sphere_radii):
         X = T.apply(p)
-        cen = shadow_centroid(g, X, r)
-        proj = g.project(X)
+        # distortion moves the shadow as a whole to first order
+        cen = sc.world.imaging.distort(shadow_centroid(g, X, r), g.shape)
+        proj = sc.world.imaging.distort(g.project(X), g.shape)
         dpx = float(shadow_diameter_px(g, X, r))
         rad = dpx / 2
         inside = bool(rad <= cen[0] <= cols - 1 - rad and rad <= cen[1] <= rows - 1 - rad)

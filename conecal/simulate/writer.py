@@ -22,6 +22,7 @@ import yaml
 from .. import __version__
 from ..errors import InputError
 from ..jsonio import dumps
+from ..effects.imaging import beam_hardened
 from .render import render_line_integrals
 from .scenarios import Scenario, marker_truth
 
@@ -37,22 +38,30 @@ def _umask() -> int:
 def expose(sc: Scenario, line_integrals: np.ndarray, rng: np.random.Generator, previous_T: np.ndarray | None = None):
     """Turn line integrals into a transmission image as the detector records it.
 
-    Background plate, focal-spot blur (Gaussian on the intensity), circular
-    field of view, detector lag, Poisson noise at ``sc.photons`` per pixel
-    and optional JPEG compression. Returns (transmission float64, noiseless
-    transmission before lag for the next frame's lag).
+    Background plate, beam hardening, focal-spot blur (Gaussian on the
+    intensity; the modelled ``sc.blur_px`` and any extra blur in quadrature),
+    circular field of view, detector lag, scattered intensity, Poisson noise
+    at ``sc.photons`` per pixel and optional JPEG compression. Returns
+    (transmission float64, noiseless transmission before lag for the next
+    frame's lag).
     """
+    im = sc.world.imaging
     rows, cols = line_integrals.shape
     a0, gc, gr = sc.background
     a = line_integrals
     if a0 or gc or gr:
         a = a + (a0 + gc * np.arange(cols)[None, :] / cols + gr * np.arange(rows)[:, None] / rows)
+    a = beam_hardened(a, im.beam_hardening)
     T = np.exp(-a)
-    if sc.blur_px > 0:
-        T = cv2.GaussianBlur(T, (0, 0), sc.blur_px, borderType=cv2.BORDER_REPLICATE)
+    blur = float(np.hypot(sc.blur_px, im.extra_blur_px))
+    if blur > 0:
+        T = cv2.GaussianBlur(T, (0, 0), blur, borderType=cv2.BORDER_REPLICATE)
     clean = T
-    if sc.lag > 0 and previous_T is not None:
-        T = (1 - sc.lag) * T + sc.lag * previous_T
+    lag = sc.lag + im.lag
+    if lag > 0 and previous_T is not None:
+        T = (1 - lag) * T + lag * previous_T
+    if im.scatter:
+        T = T + im.scatter
     if sc.fov_radius is not None:
         yy, xx = np.mgrid[0:rows, 0:cols]
         outside = (xx - (cols - 1) / 2) ** 2 + (yy - (rows - 1) / 2) ** 2 > sc.fov_radius**2
@@ -94,13 +103,14 @@ def write_scan(sc: Scenario, out: str | Path, *, seed: int = 0, values: str = "a
         rng = np.random.default_rng(seed + 7919)
         transforms = sc.world.transforms()
         cfg = dict(sc.config, values=values)
+        cfg.setdefault("imaging", {"blur_px": float(sc.blur_px)})   # the stated blur, not any extra
         frames_truth = []
         prev = None
         with tifffile.TiffWriter(tmp / "projections.tif", bigtiff=sc.n_frames * np.prod(sc.geometry.shape) * 4 > 3.5e9) as tw:
             for k in range(sc.n_frames):
                 T = transforms[k]
                 g = sc.frame_geometry(k)
-                L = render_line_integrals(g, sc.solids(k, T), ss=sc.supersample)
+                L = render_line_integrals(g, sc.solids(k, T), ss=sc.supersample, distortion=sc.world.imaging)
                 img, prev = expose(sc, L, rng, prev)
                 tw.write(_stored(img, values, sc.photons), contiguous=True, photometric="minisblack")
                 frames_truth.append({"frame": k, "R": T.R.tolist(), "t": T.t.tolist(),
