@@ -134,7 +134,10 @@ def main(argv=None):
     ap.add_argument("--out", default="benchmarks/out/rpgrid")
     ap.add_argument("--no-sharpness-search", action="store_true")
     ap.add_argument("--no-fdk", action="store_true")
+    ap.add_argument("--valley", default="", metavar="DV,DV,...",
+                    help="restart the final refinement from these v shifts (px), e.g. -6,-3,3,6 (RPOptions.valley_probes)")
     args = ap.parse_args(argv)
+    opt = rpgrid.RPOptions(valley_probes=tuple(float(v) for v in args.valley.split(",") if v.strip()))
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     rows = []
@@ -146,7 +149,7 @@ def main(argv=None):
             path, truth = simulate(kind, seed, tmp)
             scan = load_scan(path)
             t0 = time.perf_counter()
-            res, prob = rpgrid.run(scan, rpgrid.RPOptions())
+            res, prob = rpgrid.run(scan, opt)
             dt = time.perf_counter() - t0
             err, ok = judge(res.x, res.sigma, truth)
             stack_mb = scan.n_frames * np.prod(scan.stack.shape) * 4 / 1e6
@@ -166,7 +169,7 @@ def main(argv=None):
                 if keep.exists():
                     shutil.rmtree(keep)
                 shutil.copytree(path, keep)
-                doc = rpgrid.document(res, prob, scan, rpgrid.RPOptions())
+                doc = rpgrid.document(res, prob, scan, opt)
                 from conecal.jsonio import write_json
 
                 write_json(out / "rp_plain.json", doc)

@@ -71,6 +71,9 @@ class RPOptions:
     motion_margin_px: float = 3.0       # lines this close to a truncated stretch or holder are dropped too
     grid_motion_px: tuple = (15.0, 8.0)  # the same margin during the two grid passes
     freeze_grangeat: bool = True        # Grangeat factors fixed at the selection geometry, like the weights
+    # v shifts (px) from which the final refinement is restarted along the
+    # shallow (v, theta) valley; off by default: it costs ~30 s a scan (see valley())
+    valley_probes: tuple = ()
     grid_cost: str = "normalised"       # or "ssd"; normalised: sum (a-b)^2 / sum (a^2+b^2)
     undetermined_sigma: dict = field(default_factory=lambda: {"shift_u_px": 2.0, "shift_v_px": 2.0, "eta_deg": 0.5,
                                                               "theta_deg": 1.0, "phi_deg": 1.0})
@@ -646,6 +649,40 @@ def refine(prob: RPProblem, opt: RPOptions, p):
     return fit, scale
 
 
+def valley(prob: RPProblem, opt: RPOptions, fit, scale, probes=(-6.0, -3.0, 3.0, 6.0)):
+    """Follow the (v, theta) valley that Gauss-Newton creeps along: refine
+    from v shifted by each of ``probes`` (px), fit a parabola to the cost
+    against v over those answers, refine once more from its vertex, and
+    keep the lowest cost. A v shift is balanced by a tilt about u so nearly
+    that the valley floor is shallow, and the solver stops about where it
+    starts on it. Costs are compared on one set of planes (those chosen at
+    the start), so that the choice of planes does not decide."""
+    k = NAMES.index("shift_v_px")
+    runs = [fit]
+    for dv in probes:
+        q = np.array(fit.x, float)
+        q[k] += dv
+        runs.append(refine(prob, opt, q)[0])
+
+    def costs(fits):
+        prob.select(fit.x)
+        return np.array([float(np.sum(prob.residuals(f.x) ** 2)) for f in fits])
+
+    c = costs(runs)
+    v = np.array([f.x[k] for f in runs])
+    a, b, _ = np.polyfit(v, c, 2)
+    if a > 0:
+        q = np.array(runs[int(np.argmin(c))].x, float)
+        q[k] = float(np.clip(-b / (2 * a), v.min(), v.max()))
+        runs.append(refine(prob, opt, q)[0])
+        c = costs(runs)
+    best = runs[int(np.argmin(c))]
+    prob.select(best.x)
+    r = prob.residuals(best.x)
+    s_best = scale if best is fit else (1.4826 * float(np.median(np.abs(r - np.median(r)))) or 1.0)
+    return best, s_best, sum(f.nfev for f in runs[1:])
+
+
 def finish(prob: RPProblem, opt: RPOptions, fit, scale, grid_best, evals, seconds) -> RPResult:
     x = fit.x
     jack = jackknife_sigma(prob, x, scale)
@@ -831,7 +868,10 @@ def run(scan, opt: RPOptions, progress=None) -> tuple[RPResult, RPProblem]:
     prob = RPProblem(nominal, T_all, tab2, axis, opt)
     t3 = time.perf_counter()
     fit, scale = refine(prob, opt, fit1.x)
-    res = finish(prob, opt, fit, scale, p_grid, evals + fit1.nfev,
+    n_valley = 0
+    if opt.valley_probes:
+        fit, scale, n_valley = valley(prob, opt, fit, scale, opt.valley_probes)
+    res = finish(prob, opt, fit, scale, p_grid, evals + fit1.nfev + n_valley,
                  {"tables_pass1": t1 - t0, "search_pass1": t2 - t1, "tables_pass2": t3 - t2})
     res.seconds["refine_pass2"] = time.perf_counter() - t3
     res.seconds["total"] = time.perf_counter() - t0
