@@ -12,10 +12,14 @@ true source/detector, or fit-linear), then diagnose, both levels, without
 being told which effect. Prints the confusion matrix, the sizes found, the
 rate of correct names (exactly the right effect and nothing else), false
 claims on clean scans, and residual RMS after modelling against the noise
-floor (marker centres and image pixels).
+floor (marker centres and image pixels). Robot effects: a 7-joint arm
+sweeping its elbow while it turns the helix holder in place, true poses
+plus fit-pose's noise (``--detect``: the frames through detect and
+fit-pose), diagnosed on the poses.
 
     python benchmarks/bench_diagnose.py            # 5 seeds per effect, ~25 min on 2 cores
     python benchmarks/bench_diagnose.py --seeds 1 --only clean blur detector_lag
+    python benchmarks/bench_diagnose.py --only clean_arm joint_offset robot_deflection arm_encoder_latency joint_backlash
     python benchmarks/bench_diagnose.py --lag-demo  # lag through detect, detect --lag, refit (~1 min)
 """
 
@@ -35,7 +39,7 @@ from click.testing import CliRunner
 from conecal.cli.main import cli
 from conecal.effects import parse_effect
 from conecal.simulate import write_scan
-from conecal.simulate.scenarios import linear_raster, rotation_scan
+from conecal.simulate.scenarios import linear_raster, robot_helix, rotation_scan
 
 # name -> (scan kind, --effect spec, labels diagnose may name for it)
 EFFECTS = {
@@ -55,7 +59,16 @@ EFFECTS = {
     "axis_scale": ("linear", "axis_scale:axis=x,scale=0.002", {"axis_scale"}),
     "axis_nonorthogonality": ("linear", "axis_nonorthogonality:axis=y,towards=x,angle=0.05",
                               {"axis_nonorthogonality"}),
+    # a 7-joint arm carrying the helix holder, elbow swivelling +-60 deg (fit-pose results)
+    "clean_arm": ("robot", None, set()),
+    "joint_offset": ("robot", "joint_offset:joint=q2,offset=0.025", {"joint_offset:q2"}),
+    "robot_deflection": ("robot", "robot_deflection:compliance=0.001,payload_kg=2", {"robot_deflection"}),
+    "arm_encoder_latency": ("robot", "encoder_latency:latency=0.025", {"encoder_latency"}),
+    "joint_backlash": ("robot", "backlash:axis=q3,amount=0.005", {"backlash:q3"}),
 }
+# fit-pose's accuracy per pose component (benchmarks/bench_pose.py: mean
+# errors 0.004 deg, 0.008 mm as 3-vector norms)
+POSE_NOISE = (0.0025, 0.005)   # deg, mm
 # drifts of source and detector have near-identical signatures in one
 # rotation scan: naming either (the other reported as ambiguous) counts
 
@@ -64,7 +77,11 @@ def make(root: Path, name: str, spec, seed: int, noise: float = 0.02, photons: f
          kind: str = "rotation") -> Path:
     """Simulate a scan with ``spec`` switched on and write truth centroids
     plus Gaussian noise of ``noise`` px as its markers (``noise=None``: run
-    ``conecal detect`` on the frames instead)."""
+    ``conecal detect`` on the frames instead). A robot scan gets true poses
+    plus fit-pose's noise as its poses.json instead (``noise=None``: frames
+    rendered in full, then detect and fit-pose with the true geometry)."""
+    if kind == "robot":
+        return make_arm(root, name, spec, seed, full=noise is None)
     if kind == "linear":
         sc = linear_raster(seed, rows=256, cols=256, pitch=0.4, steps=(4.0, 4.0, 8.0), counts=(5, 5, 3), dt=2.0)
     else:
@@ -89,8 +106,52 @@ def make(root: Path, name: str, spec, seed: int, noise: float = 0.02, photons: f
     return path
 
 
+def make_arm(root: Path, name: str, spec, seed: int, full: bool = False) -> Path:
+    """A robot sweep scan and its poses.json: true holder poses plus Gaussian
+    noise of ``POSE_NOISE`` (the frames are rendered on a small detector, which
+    diagnose does not read; the poses carry the full 640² geometry), or, with
+    ``full``, the frames in full through detect and fit-pose."""
+    from conecal.geometry import rotvec_to_matrix
+
+    def scenario(**kw):
+        sc = robot_helix(seed, trajectory="sweep", **kw)
+        if spec:
+            sc.apply_effects([parse_effect(spec)])
+        return sc
+
+    sc = scenario()
+    path = root / f"{name}_{seed}"
+    if full:
+        write_scan(sc, path, seed=seed)
+        (path / "geometry.json").write_text(json.dumps({"format": "conecal-geometry/1", **sc.geometry.to_dict()}))
+        r = CliRunner()
+        for args in (["detect", str(path), "-o", str(path / "markers.json")],
+                     ["fit-pose", str(path), "--markers", str(path / "markers.json"), "--geometry",
+                      str(path / "geometry.json"), "-o", str(path / "fit.json")]):
+            out = r.invoke(cli, args)
+            if out.exit_code != 0:
+                raise RuntimeError(out.output)
+        return path
+    write_scan(scenario(rows=48, cols=48, pitch=2.5, body="none"), path, seed=seed)
+    T = sc.world.transforms()
+    rng = np.random.default_rng(seed + 99)
+    frames = []
+    for k in range(sc.n_frames):
+        dR = rotvec_to_matrix(np.deg2rad(POSE_NOISE[0]) * rng.normal(size=3))
+        frames.append({"frame": k, "status": "ok", "R": (dR @ T.R[k]).tolist(),
+                       "t": (T.t[k] + POSE_NOISE[1] * rng.normal(size=3)).tolist(),
+                       "sigma_rotation_deg": [POSE_NOISE[0]] * 3, "sigma_translation_mm": [POSE_NOISE[1]] * 3})
+    (path / "fit.json").write_text(json.dumps({"format": "conecal-poses/1", **sc.geometry.to_dict(), "frames": frames}))
+    return path
+
+
 def run_one(path: Path, kind: str = "rotation", image: bool = True) -> dict:
     r = CliRunner()
+    if kind == "robot":
+        out = r.invoke(cli, ["diagnose", str(path / "fit.json"), str(path), "-o", str(path / "diag.json")])
+        if out.exit_code != 0:
+            raise RuntimeError(out.output)
+        return json.loads((path / "diag.json").read_text())
     if kind == "linear":
         out = r.invoke(cli, ["fit-linear", str(path), "--markers", str(path / "markers.json"), "-o", str(path / "fit.json")])
     else:
@@ -106,8 +167,10 @@ def run_one(path: Path, kind: str = "rotation", image: bool = True) -> dict:
 
 
 def named(d: dict) -> list[str]:
-    """Labels diagnose claimed, both levels, without the axis suffix (distortion keeps its kind)."""
-    return [e["effect"] if e["effect"].startswith("detector_distortion") else e["effect"].split(":")[0]
+    """Labels diagnose claimed, both levels, without the axis suffix (distortion
+    keeps its kind; on an arm the joint is part of the answer)."""
+    keep = d.get("stage") == "fit-pose" or None
+    return [e["effect"] if keep or e["effect"].startswith("detector_distortion") else e["effect"].split(":")[0]
             for e in d["effects"]]
 
 

@@ -17,7 +17,8 @@ def world():
 
 def test_registry_has_the_required_effects():
     for name in ("focal_spot_drift", "axis_scale", "axis_nonorthogonality", "rotary_wobble", "encoder_latency",
-                 "detector_drift", "backlash", "blur", "beam_hardening", "detector_lag", "scatter", "detector_distortion"):
+                 "detector_drift", "backlash", "blur", "beam_hardening", "detector_lag", "scatter", "detector_distortion",
+                 "joint_offset", "robot_deflection"):
         assert name in REGISTRY
         assert REGISTRY[name].physics
 
@@ -92,3 +93,49 @@ def test_image_effects_set_the_imaging_record():
         parse_effect("detector_lag:fraction=1.5").apply(w)
     with pytest.raises(InputError):
         parse_effect("scatter:fraction=-0.1").apply(w)
+
+
+def arm_world():
+    from conecal.simulate.scenarios import ROBOT_DH, ROBOT_HOME
+    from conecal.geometry import RigidTransform
+    from conecal.kinematics import DHRobot
+
+    robot = DHRobot(np.array(ROBOT_DH, float), RigidTransform(np.eye(3), np.array([0, 0, 107.0])),
+                    RigidTransform(np.eye(3), np.array([5.0, -3.0, 20.0])))
+    q = ROBOT_HOME + np.linspace(0, 1, 6)[:, None] * np.array([20, -15, 40, 10, -30, 25, 90.0])
+    return World.start(np.arange(6.0), q, robot=robot)
+
+
+def test_gravity_torque_is_minus_the_slope_of_potential_energy():
+    """tau_j = -dU/dq_j with U = -m (g . p): the moment about each joint axis
+    is what moving that joint does to the holder's height."""
+    from conecal.effects.robot import GRAVITY, gravity_torques
+
+    w = arm_world()
+    tau = gravity_torques(w)
+    down = -w.robot.base.R[:, 2] * GRAVITY
+    h = 1e-6
+    for j in range(w.robot.n_joints):
+        dq = np.zeros(w.robot.n_joints)
+        dq[j] = np.degrees(h)
+        p1 = w.robot.transforms(w.readings + dq).t
+        p0 = w.robot.transforms(w.readings - dq).t
+        slope = ((p1 - p0) * 1e-3 @ down) / (2 * h)     # -dU/dq per kg: J/rad = N*m
+        assert np.allclose(tau[:, j], slope, atol=1e-6)
+    assert np.allclose(tau[:, 0], 0, atol=1e-9)          # the vertical first joint carries no moment
+
+
+def test_robot_effects_move_the_joints():
+    w = arm_world()
+    off = parse_effect("joint_offset:joint=q3,offset=0.05").apply(w)
+    assert np.allclose(off.true_readings - w.readings, np.eye(7)[2] * 0.05)
+    sag = parse_effect("robot_deflection:compliance=0.001,payload_kg=2").apply(w)
+    from conecal.effects.robot import gravity_torques
+    assert np.allclose(sag.true_readings - w.readings, 0.002 * gravity_torques(w))
+    bl = parse_effect("backlash:axis=q2,amount=0.01").apply(w)
+    assert np.allclose(np.abs(bl.true_readings - w.readings)[:, 1], 0.005)
+    assert np.allclose(w.transforms().t, w.robot.transforms(w.readings).t)
+    with pytest.raises(InputError, match="no joint named 'q9'"):
+        parse_effect("joint_offset:joint=q9").apply(w)
+    with pytest.raises(InputError, match="robot arm"):
+        parse_effect("robot_deflection").apply(world())

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import click
+import numpy as np
 
 from .options import info, output_option, progress_bar
 
@@ -19,8 +20,8 @@ from .options import info, output_option, progress_bar
 @click.option("--image-frames", type=click.IntRange(4, 100000), default=48, show_default=True,
               help="Frames (evenly spread) whose marker patches the image level uses.")
 def command(result, scan, output, alpha, image_level, image_frames):
-    """Find the physical effect that RESULT (fit-rotation or fit-linear on
-    SCAN) left out, model it, and show the fit improve.
+    """Find the physical effect that RESULT (fit-rotation, fit-linear or
+    fit-pose on SCAN) left out, model it, and show the fit improve.
 
     The residuals are tested against time, frame order, each axis reading,
     velocity and direction, position on the detector, marker id and rotation
@@ -35,9 +36,15 @@ def command(result, scan, output, alpha, image_level, image_frames):
     BIC clearly, and reported as ambiguous when the held-out data cannot
     tell it from another (paired, within two standard errors).
 
+    On a fit-pose result the observations are the holder's poses against
+    the arm's model (joint log through the DH table, registration refitted):
+    joint zero offsets, the arm yielding under the holder's weight, encoder
+    latency and joint backlash (geometric level only).
+
     \b
     Examples:
       conecal diagnose demo/rot_geometry.json demo/rot -o demo/diagnosis.json
+      conecal diagnose demo/poses.json demo/arm -o demo/arm_diagnosis.json
     """
     from .. import __version__
     from ..diagnose import ResultModel, diagnose, diagnose_image, merge_levels
@@ -45,9 +52,16 @@ def command(result, scan, output, alpha, image_level, image_frames):
     from ..jsonio import read_json, rounded, write_json
     from ..scan import load_scan
 
-    doc = read_json(result, "conecal-geometry")
+    doc = read_json(result, ("conecal-geometry", "conecal-poses"))
     s = load_scan(scan)
-    model = ResultModel(doc, s, result)
+    pose = doc["format"].startswith("conecal-poses")
+    if pose:
+        from ..diagnose.pose import PoseModel
+
+        model = PoseModel(doc, s, result)
+        image_level = False   # the image level re-renders fit-rotation and fit-linear scenes only
+    else:
+        model = ResultModel(doc, s, result)
     tie = (lambda evals: scene_chi2(model, s, evals)) if image_level else None
     with progress_bar("diagnose: geometry") as prog:
         out, final = diagnose(model, alpha=alpha, progress=prog, tie_breaker=tie)
@@ -57,11 +71,19 @@ def command(result, scan, output, alpha, image_level, image_frames):
             image = diagnose_image(model, s, geometric_effects=final.get("effects") or (), geometric_base=final["x9"],
                                    max_frames=image_frames, progress=prog)
         out = merge_levels(out, image)
-    g = model.geometry_after(final["x9"])
+    units = ({"residual": "px: the holder's mean sphere shadow, fitted pose minus the arm's model",
+              "observation": "one frame's pose: rotation vector (rad, lab) and translation (mm, lab), fitted minus "
+                             "modelled",
+              "chi2": "sum of squared whitened residuals (by fit-pose's sigma and the arm's repeatability)"}
+             if pose else {"residual": "px", "chi2": "sum of squared whitened residuals (by detect's sigma)"})
     out = {"format": "conecal-diagnosis/1", "software": f"conecal {__version__}", "result": str(result),
-           "scan": str(scan), "stage": doc.get("stage"), **out, "image_level": image,
-           "refitted_geometry": {"format": "conecal-geometry/1", **g.to_dict(), "axes": doc.get("axes", [])},
-           "units": {"residual": "px", "chi2": "sum of squared whitened residuals (by detect's sigma)"}}
+           "scan": str(scan), "stage": model.stage if pose else doc.get("stage"), **out, "image_level": image,
+           **model.refitted(final["x9"]), "units": units}
     write_json(output, rounded(out))
     info(f"wrote {output}: {out['verdict']}; RMS {out['rms_px_before']:.4f} -> {out['rms_px_after']:.4f} px "
          f"(noise floor {out['noise_floor_px']:.4f} px)")
+    if pose:
+        b, a = out["before"], out["after"]
+        info(f"holder pose RMS {b['rms_translation_mm']:.4f} -> {a['rms_translation_mm']:.4f} mm, "
+             f"{b['rms_rotation_deg']:.4f} -> {a['rms_rotation_deg']:.4f} deg (arm repeatability "
+             f"{np.round(a['repeatability']['translation_mm'], 4).tolist()} mm)")

@@ -120,6 +120,10 @@ def command(results, out_dir, reconstruct):
             console.print(f"[bold]{path}[/] — diagnose: {doc['verdict']}")
             console.print(f"  residual RMS {doc['rms_px_before']:.4f} -> {doc['rms_px_after']:.4f} px "
                           f"(noise floor {doc['noise_floor_px']:.4f} px)")
+            if "before" in doc:   # fit-pose: the holder's pose against the arm's model
+                b, a = doc["before"], doc["after"]
+                console.print(f"  holder pose RMS {b['rms_translation_mm']:.4f} -> {a['rms_translation_mm']:.4f} mm, "
+                              f"{b['rms_rotation_deg']:.4f} -> {a['rms_rotation_deg']:.4f} deg")
             img = doc.get("image_level") or {}
             if "chi2_per_dof_before" in img:
                 console.print(f"  image level: chi2/dof {img['chi2_per_dof_before']:.4f} -> "

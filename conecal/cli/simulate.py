@@ -36,6 +36,10 @@ def _system_of(scan_dir) -> dict:
 @click.option("--effect", "effects", multiple=True, metavar="NAME[:K=V,...]",
               help=f"Switch on a physical effect (repeatable). Known: {', '.join(sorted(REGISTRY))}.")
 @click.option("--dense-holder", is_flag=True, help="Add a dense object holder (robot, circular).")
+@click.option("--trajectory", type=click.Choice(["turntable", "sweep"]), default=None,
+              help="Robot only: 'turntable' (default; the flange turns the holder, other joints wiggle) or "
+                   "'sweep' (the elbow also swivels +-60 deg with the holder held in place, one placement error: "
+                   "varying load, speeds and directions, for diagnose).")
 @click.option("--schedule", type=click.Choice(["uniform", "sweep"]), default=None,
               help="Rotation: step evenly through a turn, or swing back and forth at varying speed.")
 @click.option("--truncation", type=click.Choice(["axial", "transaxial"]), default=None,
@@ -47,7 +51,7 @@ def _system_of(scan_dir) -> dict:
               help="A simulated scan directory whose true source, detector and nominal set-up to reuse "
                    "(linear and rotation only): two scans of one system.")
 @click.option("--overwrite", is_flag=True, help="Replace OUT if it exists.")
-def command(kind, out, seed, frames, photons, blur_px, values, effects, dense_holder, schedule, truncation,
+def command(kind, out, seed, frames, photons, blur_px, values, effects, dense_holder, trajectory, schedule, truncation,
             misalignment, same_as, overwrite):
     """Simulate a scan of KIND (linear | rotation | robot | circular) into OUT.
 
@@ -60,6 +64,7 @@ def command(kind, out, seed, frames, photons, blur_px, values, effects, dense_ho
       conecal simulate linear demo/linear
       conecal simulate rotation demo/rot --frames 36 --effect rotary_wobble:amplitude=0.05
       conecal simulate robot demo/robot --seed 3 --dense-holder
+      conecal simulate robot demo/arm --trajectory sweep --effect robot_deflection:compliance=0.002
     """
     kw = {}
     if frames is not None:
@@ -70,6 +75,10 @@ def command(kind, out, seed, frames, photons, blur_px, values, effects, dense_ho
         if kind not in ("robot", "circular"):
             raise InputError("--dense-holder: only for robot and circular scans")
         kw["dense_holder"] = True
+    if trajectory is not None:
+        if kind != "robot":
+            raise InputError("--trajectory: only for robot scans")
+        kw["trajectory"] = trajectory
     if schedule is not None:
         if kind != "rotation":
             raise InputError("--schedule: only for rotation scans")

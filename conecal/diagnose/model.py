@@ -65,12 +65,15 @@ def _project(S, O, u, v, n, pitch, X):
 class ResultModel:
     """Predictions of a result's observations under effects and a geometry change."""
 
+    n_comp = 2   # each observation: a marker centre (x, y) px
+
     def __init__(self, doc: dict, scan, path="result"):
         from ..export.views import _chain_from_doc
 
         stage = doc.get("stage")
         if stage not in ("fit-rotation", "fit-linear"):
-            raise InputError(f"{path}: diagnose works on fit-rotation and fit-linear results, not {stage!r}")
+            raise InputError(f"{path}: diagnose works on fit-rotation and fit-linear results (and fit-pose's poses), "
+                             f"not {stage!r}")
         if isinstance(doc.get("scan"), list):
             raise InputError(f"{path}: a multi-scan result; diagnose one scan's fit at a time")
         self.doc = doc
@@ -143,6 +146,31 @@ class ResultModel:
     @property
     def n_base(self) -> int:
         return len(self.base_names)
+
+    @property
+    def axis_names(self) -> list[str]:
+        return list(self.chain.names)
+
+    @property
+    def rotary(self) -> list[bool]:
+        return [isinstance(a, RotaryAxis) for a in self.chain.axes]
+
+    def residual_px(self, effects, base) -> np.ndarray:
+        """(m, 2) px: measured minus predicted centres."""
+        return self.obs.xy - self.predict(effects, base)
+
+    def rms_px(self, effects, base) -> float:
+        return float(np.sqrt(np.mean(self.residual_px(effects, base) ** 2)))
+
+    def noise_floor_px(self) -> float:
+        return float(np.sqrt(np.mean(self.obs.sigma ** 2)))
+
+    def summary(self, effects, base) -> dict:
+        return {}
+
+    def refitted(self, base) -> dict:
+        return {"refitted_geometry": {"format": "conecal-geometry/1", **self.geometry_after(base).to_dict(),
+                                      "axes": self.doc.get("axes", [])}}
 
     def _apply_base(self, b):
         """(chain, geometry, per-observation points) under base parameters ``b``."""

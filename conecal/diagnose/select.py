@@ -48,6 +48,10 @@ def _moving(model):
 
 def candidates(model) -> list[Candidate]:
     """Every effect of the registry that this recording could show, parameterised."""
+    if model.stage == "fit-pose":
+        from .pose import candidates as pose_candidates
+
+        return pose_candidates(model)
     out = []
     dur = max(float(np.ptp(model.times)), 1e-9)
     out.append(Candidate("focal_spot_drift", ("vx", "vy", "vz"), ("mm/s",) * 3, (1e-3 / dur,) * 3,
@@ -145,14 +149,14 @@ def _heldout(model, cands) -> np.ndarray:
     for train in (even, ~even):
         x, _, _, split = _fit(model, cands, train)
         x9, effs = split(x)
-        r = model.whitened(effs, x9, ~train).reshape(-1, 2)
+        r = model.whitened(effs, x9, ~train).reshape(-1, model.n_comp)
         out[~train] = np.sum(r * r, axis=1)
     return out
 
 
 def evaluate(model, cands) -> dict:
     x, sig, chi2, split = _fit(model, cands)
-    n = 2 * len(model.obs.row)
+    n = model.n_comp * len(model.obs.row)
     k = len(x)
     x9, effs = split(x)
     r2 = _heldout(model, cands)
@@ -200,7 +204,7 @@ def diagnose(model, *, alpha: float = 0.01, progress=None, tie_breaker=None) -> 
     the paired difference (and 10).
     """
     base = evaluate(model, [])
-    r0 = model.whitened(None, np.zeros(model.n_base))
+    r0 = model.whitened(None, base["x9"])   # the fit's own parameters refitted: zero unless registration is free
     tests_before = structure_tests(model, r0, alpha)
     cands = candidates(model)
     rows = []
@@ -248,9 +252,9 @@ def diagnose(model, *, alpha: float = 0.01, progress=None, tie_breaker=None) -> 
     final = evals["+".join(chosen)] if chosen else base
     r_after = model.whitened(final["effects"], final["x9"])
     tests_after = structure_tests(model, r_after, alpha)
-    px_before = (model.obs.xy - model.predict(None, np.zeros(model.n_base)))
-    px_after = (model.obs.xy - model.predict(final["effects"], final["x9"]))
-    noise = float(np.sqrt(np.mean(model.obs.sigma ** 2)))
+    b0 = base["x9"]
+    px_before = model.residual_px(None, b0)
+    px_after = model.residual_px(final["effects"], final["x9"])
     found = []
     if chosen:
         by = {c.label: c for c in cands}
@@ -272,9 +276,11 @@ def diagnose(model, *, alpha: float = 0.01, progress=None, tie_breaker=None) -> 
         "candidates": rows,
         "tests_before": tests_before,
         "tests_after": tests_after,
-        "rms_px_before": float(np.sqrt(np.mean(px_before ** 2))),
-        "rms_px_after": float(np.sqrt(np.mean(px_after ** 2))),
-        "noise_floor_px": noise,
+        "rms_px_before": model.rms_px(None, b0),
+        "rms_px_after": model.rms_px(final["effects"], final["x9"]),
+        "noise_floor_px": model.noise_floor_px(),
+        **({"before": model.summary(None, b0), "after": model.summary(final["effects"], final["x9"])}
+           if model.summary(None, b0) else {}),
         "heldout_gain_chi2": float(base["heldout"] - final["heldout"]) if chosen else 0.0,
         "image_tie_break_chi2": tie,
         "n_observations": int(len(model.obs.row)),

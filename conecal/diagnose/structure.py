@@ -15,10 +15,10 @@ from scipy.stats import chi2
 
 
 def _drop(z, basis):
-    """chi^2 explained by ``basis`` (m, k) beyond a constant, summed over both components."""
+    """chi^2 explained by ``basis`` (m, k) beyond a constant, summed over the components of ``z`` (m, c)."""
     A = np.column_stack([np.ones(len(z)), basis])
     total = 0.0
-    for c in range(2):
+    for c in range(z.shape[1]):
         y = z[:, c]
         y0 = y - y.mean()
         coef, *_ = np.linalg.lstsq(A, y, rcond=None)
@@ -39,7 +39,7 @@ def variables(model) -> dict:
     rows = o.row
     t = model.times[rows]
     out = {"time": _standardise(t), "frame order": _standardise(rows)}
-    for k, name in enumerate(model.chain.names):
+    for k, name in enumerate(model.axis_names):
         q = model.readings[:, k]
         if np.ptp(q) <= 0:
             continue
@@ -49,12 +49,13 @@ def variables(model) -> dict:
             out[f"velocity {name}"] = _standardise(v[rows])
         if (np.sign(v) > 0).any() and (np.sign(v) < 0).any():
             out[f"direction of {name}"] = _standardise(np.sign(v[rows]))
-        if model.chain.axes[k].__class__.__name__.endswith("RotaryAxis"):
+        if model.rotary[k]:
             a = np.deg2rad(q[rows])
             out[f"{name} harmonics 1-2"] = np.column_stack([np.cos(a), np.sin(a), np.cos(2 * a), np.sin(2 * a)])
-    rows_, cols_ = model.geometry.shape
-    xy = o.xy - np.array([(cols_ - 1) / 2, (rows_ - 1) / 2])
-    out["detector position"] = np.column_stack([xy, xy[:, 0] * np.hypot(*xy.T), xy[:, 1] * np.hypot(*xy.T)])
+    if hasattr(o, "xy"):
+        rows_, cols_ = model.geometry.shape
+        xy = o.xy - np.array([(cols_ - 1) / 2, (rows_ - 1) / 2])
+        out["detector position"] = np.column_stack([xy, xy[:, 0] * np.hypot(*xy.T), xy[:, 1] * np.hypot(*xy.T)])
     ids = np.unique(o.ids)
     if len(ids) > 1:
         out["marker id"] = np.column_stack([(o.ids == i).astype(float) for i in ids[1:]])
@@ -63,11 +64,11 @@ def variables(model) -> dict:
 
 def structure_tests(model, residual_whitened: np.ndarray, alpha: float = 0.01) -> list[dict]:
     """One record per variable: chi^2 drop, dof, p, Holm-adjusted p, significant."""
-    z = residual_whitened.reshape(-1, 2)
+    z = residual_whitened.reshape(-1, model.n_comp)
     tests = []
     for name, basis in variables(model).items():
         d = _drop(z, basis)
-        dof = 2 * basis.shape[1]
+        dof = z.shape[1] * basis.shape[1]
         tests.append({"variable": name, "chi2_explained": d, "dof": dof, "p": float(chi2.sf(d, dof))})
     order = np.argsort([t["p"] for t in tests])
     m = len(tests)

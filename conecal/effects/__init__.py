@@ -1,6 +1,6 @@
 """Registry of physical effects shared by ``simulate`` and ``diagnose``."""
 
-from . import imaging, motion  # noqa: F401  (importing registers the effects)
+from . import imaging, motion, robot  # noqa: F401  (importing registers the effects)
 from .base import REGISTRY, Effect, World, parse_effect
 from .imaging import Imaging
 

@@ -32,7 +32,9 @@ class World:
     times : (n,) s since the start; readings : (n, k) what the controller
     logged; true_readings : (n, k) where the axes really stood while each
     frame was exposed; chain : the true axes (None for a robot);
-    robot_transforms : true holder-to-lab transforms (robot scans);
+    robot : the true arm (robot scans), posed by ``true_readings``;
+    placement : (robot scans) per-frame lab-side error of the arm beyond its
+    joints (repeatability, a registration error), applied after it;
     source_offsets : (n, 3) mm added to the true focal-spot position;
     detector_offsets : (n, 3) mm added to the true detector position;
     imaging : how the detector records (blur, beam hardening, lag, scatter,
@@ -43,24 +45,33 @@ class World:
     readings: np.ndarray
     true_readings: np.ndarray
     chain: Chain | None
-    robot_transforms: RigidTransform | None
+    robot: "DHRobot | None"
     source_offsets: np.ndarray
     detector_offsets: np.ndarray = None
     imaging: "Imaging" = None
+    placement: RigidTransform | None = None
 
     @classmethod
-    def start(cls, times, readings, chain=None, robot_transforms=None) -> "World":
+    def start(cls, times, readings, chain=None, robot=None, placement=None) -> "World":
         times = np.asarray(times, dtype=float)
         readings = np.asarray(readings, dtype=float)
         from .imaging import Imaging
 
-        return cls(times, readings, readings.copy(), chain, robot_transforms, np.zeros((len(times), 3)),
-                   np.zeros((len(times), 3)), Imaging())
+        return cls(times, readings, readings.copy(), chain, robot, np.zeros((len(times), 3)),
+                   np.zeros((len(times), 3)), Imaging(), placement)
+
+    @property
+    def names(self) -> list[str]:
+        """The readings' columns: axis names, or q1..qn for a robot."""
+        if self.chain is not None:
+            return list(self.chain.names)
+        return [f"q{j + 1}" for j in range(self.readings.shape[1])]
 
     def transforms(self) -> RigidTransform:
         """True sample-to-lab transform per frame."""
-        if self.robot_transforms is not None:
-            return self.robot_transforms
+        if self.robot is not None:
+            T = self.robot.transforms(self.true_readings)
+            return T if self.placement is None else self.placement @ T
         return self.chain.transforms(self.true_readings)
 
     def replace(self, **kw) -> "World":

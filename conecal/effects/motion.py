@@ -163,8 +163,11 @@ class Backlash(Effect):
     units = {"amount": "mm or deg (the axis' unit)"}
 
     def apply(self, world):
-        a = _axis(world, self.axis)
-        k = world.chain.names.index(a.name)
+        if world.chain is not None:
+            _axis(world, self.axis)
+        elif self.axis not in world.names:
+            raise InputError(f"effect backlash: no joint named {self.axis!r} (joints: {', '.join(world.names)})")
+        k = world.names.index(self.axis)
         q = world.readings[:, k]
         v = np.gradient(q, world.times) if len(q) > 1 else np.zeros_like(q)
         true = world.true_readings.copy()

@@ -152,9 +152,22 @@ class DHRobot:
         q = np.atleast_2d(np.asarray(q_deg, dtype=float))
         if q.shape[1] != self.n_joints:
             raise ValueError(f"joint readings have {q.shape[1]} columns, the robot has {self.n_joints} joints")
+        frames = self.joint_frames(q)
+        n = q.shape[0]
+        flange = RigidTransform(np.broadcast_to(self.flange.R, (n, 3, 3)), np.broadcast_to(self.flange.t, (n, 3)))
+        return frames[-1] @ flange
+
+    def joint_frames(self, q_deg: np.ndarray) -> list[RigidTransform]:
+        """Each joint's frame in the lab (n_joints transforms of n_frames each):
+        its origin lies on the joint axis and its z axis is the axis
+        (rotation by +q turns about +z)."""
+        q = np.atleast_2d(np.asarray(q_deg, dtype=float))
+        if q.shape[1] != self.n_joints:
+            raise ValueError(f"joint readings have {q.shape[1]} columns, the robot has {self.n_joints} joints")
         n = q.shape[0]
         T = RigidTransform(np.broadcast_to(self.base.R, (n, 3, 3)), np.broadcast_to(self.base.t, (n, 3)))
+        out = []
         for k, (a, alpha, d, theta) in enumerate(self.dh):
             T = T @ dh_modified(a, alpha, d, theta + q[:, k])
-        flange = RigidTransform(np.broadcast_to(self.flange.R, (n, 3, 3)), np.broadcast_to(self.flange.t, (n, 3)))
-        return T @ flange
+            out.append(T)
+        return out

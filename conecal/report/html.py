@@ -123,6 +123,11 @@ def _diagnosis_section(path, doc) -> tuple[str, int]:
              f"<p><b>{html.escape(doc.get('verdict', ''))}</b></p>",
              f"<p>Residual RMS {doc['rms_px_before']:.4f} → {doc['rms_px_after']:.4f} px (noise floor "
              f"{doc['noise_floor_px']:.4f} px); held-out χ² gain {doc.get('heldout_gain_chi2', 0):.1f}.</p>"]
+    if "before" in doc:   # fit-pose: the holder's pose against the arm's model
+        b, a = doc["before"], doc["after"]
+        parts.append(f"<p>Holder pose RMS {b['rms_translation_mm']:.4f} → {a['rms_translation_mm']:.4f} mm, "
+                     f"{b['rms_rotation_deg']:.4f} → {a['rms_rotation_deg']:.4f} deg; the arm's repeatability "
+                     f"(estimated) {', '.join(f'{x:.4f}' for x in a['repeatability']['translation_mm'])} mm.</p>")
     rows = "".join(f"<tr><td>{html.escape(c['effect'])}</td><td class=num>{c['heldout_gain_chi2']:.1f}</td>"
                    f"<td class=num>{c['bic_gain']:.1f}</td><td>{'yes' if c['claimable'] else ''}</td></tr>"
                    for c in doc.get("candidates", []))

@@ -208,6 +208,38 @@ ROBOT_DH = [[0, 0, 340, 0], [0, -90, 0, 0], [0, 90, 400, 0], [0, 90, 0, 0],
 ROBOT_HOME = np.array([10.0, 35.0, -5.0, -70.0, 8.0, 55.0, 0.0])
 
 
+def _elbow_sweep(robot: DHRobot, q: np.ndarray, amplitude_deg: float) -> np.ndarray:
+    """Joint readings that hold each frame's holder pose of ``q`` while joint
+    3 swivels the elbow through one period of +-``amplitude_deg`` (the arm's
+    self-motion: seven joints, six pose constraints)."""
+    from scipy.optimize import least_squares
+
+    from ..geometry import matrix_to_rotvec
+
+    target = robot.transforms(q)
+    free = [0, 1, 3, 4, 5, 6]
+    out = q.copy()
+    prev = q[0].copy()
+    n = len(q)
+    for k in range(n):
+        q3 = q[k, 2] + amplitude_deg * np.sin(2 * np.pi * k / n)
+
+        def pose_error(x):
+            qq = prev.copy()
+            qq[free], qq[2] = x, q3
+            T = robot.transforms(qq[None])[0]
+            return np.concatenate([100.0 * matrix_to_rotvec(T.R @ target.R[k].T), T.t - target.t[k]])
+
+        x0 = prev[free].copy()
+        if k:
+            x0[5] += q[k, 6] - q[k - 1, 6]
+        sol = least_squares(pose_error, x0, xtol=1e-12, ftol=1e-12)
+        prev = prev.copy()
+        prev[free], prev[2] = sol.x, q3
+        out[k] = prev
+    return out
+
+
 def helix_phantom(n=50, radius=12.0, height=30.0, turns=2.5):
     """CAD positions (n, 3) mm of a helix of spheres about the holder's z axis."""
     s = np.linspace(0, 1, n)
@@ -217,7 +249,8 @@ def helix_phantom(n=50, radius=12.0, height=30.0, turns=2.5):
 
 def robot_helix(seed=0, *, rows=640, cols=640, pitch=0.2, sod=250.0, sdd=750.0, diameter=0.8, mu=0.5,
                 n_frames=120, dt=0.5, n_spheres=50, offset_mm=1.0, offset_deg=0.5, jitter_mm=0.02,
-                clusters=3, dense_holder=False, body="solid", max_offset: tuple | None = None) -> Scenario:
+                clusters=3, dense_holder=False, body="solid", max_offset: tuple | None = None,
+                trajectory: str = "turntable", sweep_deg: float = 60.0) -> Scenario:
     """A robot arm carrying a holder with a helix of spheres (Pekel et al.).
 
     The flange joint turns the holder through 360 deg while the other joints
@@ -226,6 +259,13 @@ def robot_helix(seed=0, *, rows=640, cols=640, pitch=0.2, sod=250.0, sdd=750.0, 
     ``max_offset`` = (mm, deg)) plus frame jitter. ``body``:
     'solid' (a PMMA cylinder enclosing the helix), 'tube' (a thin-walled tube
     inside the helix: strong ridges, a clutter test) or 'none'.
+    ``trajectory``: 'turntable' (the other joints only wiggle) or 'sweep':
+    the elbow swivels once through +-``sweep_deg`` about the shoulder-wrist
+    line (joint 3 leads, the others follow by inverse kinematics) while the
+    holder turns in place, so the arm's configuration, its gravity load,
+    its joint speeds and their directions all change during the scan -
+    what robot errors need to be told apart; its one pose cluster is a
+    registration error of the arm's base.
     """
     rng = np.random.default_rng(seed)
     nominal = ConeGeometry.nominal(sod=sod, sdd=sdd, shape=(rows, cols), pixel_pitch=(pitch, pitch))
@@ -239,11 +279,19 @@ def robot_helix(seed=0, *, rows=640, cols=640, pitch=0.2, sod=250.0, sdd=750.0, 
     q = np.tile(ROBOT_HOME, (n_frames, 1))
     q[:, 6] = np.arange(n_frames) * 360.0 / n_frames
     ph = rng.uniform(0, 2 * np.pi, 6)
-    for j in range(6):
-        q[:, j] += 0.15 * np.sin(2 * np.pi * np.arange(n_frames) / n_frames * (j % 3 + 1) + ph[j])
+    if trajectory == "sweep":
+        q = _elbow_sweep(robot, q, sweep_deg)
+    elif trajectory == "turntable":
+        for j in range(6):
+            q[:, j] += 0.15 * np.sin(2 * np.pi * np.arange(n_frames) / n_frames * (j % 3 + 1) + ph[j])
+    else:
+        raise ValueError(f"trajectory must be turntable or sweep, not {trajectory!r}")
     times = np.arange(n_frames) * dt
     T_log = robot.transforms(q)
     # pose clusters: the arm settles into one of a few repeatable errors
+    # (a sweep has one: the base's registration error)
+    if trajectory == "sweep":
+        clusters = 1
     cl_t = rng.normal(0, offset_mm, (clusters, 3))
     cl_r = np.deg2rad(rng.normal(0, offset_deg, (clusters, 3)))
     if max_offset is not None:
@@ -254,9 +302,10 @@ def robot_helix(seed=0, *, rows=640, cols=640, pitch=0.2, sod=250.0, sdd=750.0, 
     which = rng.integers(0, clusters, n_frames)
     dR = rotvec_to_matrix(cl_r[which] + np.deg2rad(0.01) * rng.normal(size=(n_frames, 3)))
     dt_ = cl_t[which] + jitter_mm * rng.normal(size=(n_frames, 3))
+    # each error turns the holder about its own (logged) position, then shifts it
     centre = T_log.t
-    T_true = RigidTransform(dR @ T_log.R, (dR @ (T_log.t - centre)[..., None])[..., 0] + centre + dt_)
-    world = World.start(times, q, robot_transforms=T_true)
+    placement = RigidTransform(dR, centre + dt_ - (dR @ centre[..., None])[..., 0])
+    world = World.start(times, q, robot=robot, placement=placement)
     cad = helix_phantom(n_spheres)
     robot_cfg = {"dh": ROBOT_DH, "flange": flange.matrix().tolist(), "base": base.matrix().tolist()}
     cfg = _config("robot", rows, cols, pitch, sod, sdd, diameter, robot=robot_cfg, phantom="phantom.csv")
