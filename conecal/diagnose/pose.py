@@ -23,6 +23,7 @@ arm have unit variance and the claim thresholds mean what they say.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import cached_property
 
 import numpy as np
 from scipy.optimize import least_squares
@@ -148,7 +149,8 @@ class PoseModel:
 
     # what diagnose reports in detector pixels: how far the model puts the
     # holder's spheres from where the fitted pose puts them
-    def _px_jacobians(self) -> np.ndarray:
+    @cached_property
+    def _px_jacobian(self) -> np.ndarray:
         """(m, 2 n_spheres, 6): projected sphere positions against a pose
         perturbation (small rotation about the holder's origin, rad; shift, mm),
     the way ``_residual`` splits a pose difference."""
@@ -161,24 +163,21 @@ class PoseModel:
             out.append(np.concatenate([Jw, J], axis=2).reshape(-1, 6))
         return np.array(out)
 
+    def _shadow_shifts(self, effects, base) -> np.ndarray:
+        """(m, 2 n_spheres) px: every sphere shadow moved by the pose difference."""
+        return np.einsum("mkj,mj->mk", self._px_jacobian, self._residual(effects, base))
+
     def residual_px(self, effects, base) -> np.ndarray:
         """(m, 2) px: displacement of the holder's mean sphere shadow, fitted minus modelled."""
-        if not hasattr(self, "_J"):
-            self._J = self._px_jacobians()
-        d = np.einsum("mkj,mj->mk", self._J, self._residual(effects, base))
+        d = self._shadow_shifts(effects, base)
         return d.reshape(len(d), -1, 2).mean(axis=1)
 
     def rms_px(self, effects, base) -> float:
-        if not hasattr(self, "_J"):
-            self._J = self._px_jacobians()
-        d = np.einsum("mkj,mj->mk", self._J, self._residual(effects, base))
-        return float(np.sqrt(np.mean(d ** 2)))
+        return float(np.sqrt(np.mean(self._shadow_shifts(effects, base) ** 2)))
 
     def noise_floor_px(self) -> float:
-        if not hasattr(self, "_J"):
-            self._J = self._px_jacobians()
-        var = np.einsum("mkj,mj,mkj->mk", self._J, self.sigma ** 2, self._J)
-        return float(np.sqrt(np.mean(var)))
+        J = self._px_jacobian
+        return float(np.sqrt(np.mean(np.einsum("mkj,mj,mkj->mk", J, self.sigma ** 2, J))))
 
     def summary(self, effects, base) -> dict:
         """Pose residual RMS in physical units and the noise model."""

@@ -254,6 +254,7 @@ def diagnose(model, *, alpha: float = 0.01, progress=None, tie_breaker=None) -> 
     tests_after = structure_tests(model, r_after, alpha)
     b0 = base["x9"]
     px_before = model.residual_px(None, b0)
+    summary_before = model.summary(None, b0)   # physical units beyond px (fit-pose: mm, deg); {} otherwise
     px_after = model.residual_px(final["effects"], final["x9"])
     found = []
     if chosen:
@@ -279,8 +280,8 @@ def diagnose(model, *, alpha: float = 0.01, progress=None, tie_breaker=None) -> 
         "rms_px_before": model.rms_px(None, b0),
         "rms_px_after": model.rms_px(final["effects"], final["x9"]),
         "noise_floor_px": model.noise_floor_px(),
-        **({"before": model.summary(None, b0), "after": model.summary(final["effects"], final["x9"])}
-           if model.summary(None, b0) else {}),
+        **({"before": summary_before, "after": model.summary(final["effects"], final["x9"])}
+           if summary_before else {}),
         "heldout_gain_chi2": float(base["heldout"] - final["heldout"]) if chosen else 0.0,
         "image_tie_break_chi2": tie,
         "n_observations": int(len(model.obs.row)),
