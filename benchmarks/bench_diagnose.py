@@ -45,6 +45,7 @@ from conecal.simulate.scenarios import linear_raster, robot_helix, rotation_scan
 EFFECTS = {
     "clean": ("rotation", None, set()),
     "rotary_wobble": ("rotation", "rotary_wobble:amplitude=0.05", {"rotary_wobble"}),
+    "rotary_runout": ("rotation", "rotary_runout:amplitude=0.0015,phase=30,harmonic=2", {"rotary_runout:2"}),
     "focal_spot_drift": ("rotation", "focal_spot_drift:velocity=0.0005/0/0", {"focal_spot_drift", "detector_drift"}),
     "detector_drift": ("rotation", "detector_drift:velocity=0.001/0.0005/0", {"focal_spot_drift", "detector_drift"}),
     "encoder_latency": ("rotation", "encoder_latency:latency=0.02", {"encoder_latency"}),
@@ -84,6 +85,11 @@ def make(root: Path, name: str, spec, seed: int, noise: float = 0.02, photons: f
         return make_arm(root, name, spec, seed, full=noise is None)
     if kind == "linear":
         sc = linear_raster(seed, rows=256, cols=256, pitch=0.4, steps=(4.0, 4.0, 8.0), counts=(5, 5, 3), dt=2.0)
+    elif kind == "rotation_point":
+        # larger spheres nearer the source, for fits with --centre-model projection:
+        # an ellipse-centre bias of up to ~0.03 px
+        sc = rotation_scan(seed, rows=256, cols=256, pitch=0.4, n_frames=72, schedule="sweep", sod=100.0,
+                           diameters=(4.0,), n_spheres=3)
     else:
         sc = rotation_scan(seed, rows=256, cols=256, pitch=0.4, n_frames=72, schedule="sweep")
     sc.photons = photons
@@ -156,7 +162,8 @@ def run_one(path: Path, kind: str = "rotation", image: bool = True) -> dict:
         out = r.invoke(cli, ["fit-linear", str(path), "--markers", str(path / "markers.json"), "-o", str(path / "fit.json")])
     else:
         out = r.invoke(cli, ["fit-rotation", str(path), "--markers", str(path / "markers.json"),
-                             "--geometry", str(path / "geometry.json"), "-o", str(path / "fit.json")])
+                             "--geometry", str(path / "geometry.json"), "-o", str(path / "fit.json")]
+                       + (["--centre-model", "projection"] if kind == "rotation_point" else []))
     if out.exit_code != 0:
         raise RuntimeError(out.output)
     out = r.invoke(cli, ["diagnose", str(path / "fit.json"), str(path), "-o", str(path / "diag.json")]
@@ -168,10 +175,15 @@ def run_one(path: Path, kind: str = "rotation", image: bool = True) -> dict:
 
 def named(d: dict) -> list[str]:
     """Labels diagnose claimed, both levels, without the axis suffix (distortion
-    keeps its kind; on an arm the joint is part of the answer)."""
-    keep = d.get("stage") == "fit-pose" or None
-    return [e["effect"] if keep or e["effect"].startswith("detector_distortion") else e["effect"].split(":")[0]
-            for e in d["effects"]]
+    keeps its kind, runout its harmonic; on an arm the joint is part of the answer)."""
+    if d.get("stage") == "fit-pose":
+        return [e["effect"] for e in d["effects"]]
+    out = []
+    for e in d["effects"]:
+        parts = e["effect"].split(":")
+        out.append(e["effect"] if parts[0] == "detector_distortion" else
+                   f"{parts[0]}:{parts[2]}" if parts[0] == "rotary_runout" else parts[0])
+    return out
 
 
 def lag_demo(seed: int = 210) -> int:

@@ -18,9 +18,32 @@ def world():
 def test_registry_has_the_required_effects():
     for name in ("focal_spot_drift", "axis_scale", "axis_nonorthogonality", "rotary_wobble", "encoder_latency",
                  "detector_drift", "backlash", "blur", "beam_hardening", "detector_lag", "scatter", "detector_distortion",
-                 "joint_offset", "robot_deflection"):
+                 "joint_offset", "robot_deflection", "rotary_runout"):
         assert name in REGISTRY
         assert REGISTRY[name].physics
+
+
+def test_rotary_runout_moves_the_axis_line_k_times_per_turn():
+    """The table's centre (on the axis) traces the whirl: a forward whirl of
+    harmonic 2 plus an equal backward one is a line along e1; harmonic 1
+    forward is a point fixed on the table (a centring error)."""
+    from conecal.geometry.rotations import orthonormal_complement
+
+    chain = Chain((RotaryAxis("theta", [0, 0, 1], [1.0, 2.0, 0.0]),))
+    q = np.linspace(0, 360, 73)[:, None]
+    w0 = World.start(np.arange(73.0), q, chain=chain)
+    e1, e2 = orthonormal_complement(np.array([0.0, 0, 1]))
+    w = parse_effect("rotary_runout:amplitude=0.01,harmonic=2,backward=0.01").apply(w0)
+    centre = w.transforms().apply(np.broadcast_to([1.0, 2.0, 0.0], (73, 3))) - [1.0, 2.0, 0.0]
+    assert np.allclose(centre, 0.02 * np.cos(2 * np.deg2rad(q)) * e1, atol=1e-12)
+    w = parse_effect("rotary_runout:amplitude=0.01,harmonic=1").apply(w0)
+    T0, T = w0.transforms(), w.transforms()
+    on_table = np.einsum("nji,nj->ni", T0.R, T.t - T0.t)       # the offset, carried back to the table
+    assert np.allclose(on_table, on_table[0], atol=1e-12) and np.isclose(np.linalg.norm(on_table[0]), 0.01)
+    with pytest.raises(InputError):
+        parse_effect("rotary_runout:harmonic=0")
+    with pytest.raises(InputError):
+        parse_effect("rotary_runout:axis=x").apply(world())
 
 
 def test_focal_spot_drift_grows_with_time():

@@ -27,7 +27,8 @@ def command(result, scan, output, alpha, image_level, image_frames):
     velocity and direction, position on the detector, marker id and rotation
     harmonics (Holm-adjusted). Then every effect of the registry that this
     recording could show (focal-spot and detector drift, axis scale and
-    non-orthogonality, rotary wobble, encoder latency, backlash, radial and
+    non-orthogonality, rotary wobble, rotary runout 2 and 3 times per turn
+    (across the beam), encoder latency, backlash, radial and
     S-shaped detector distortion) is fitted together with the fit's own
     parameters. At the image level each marker's shadow is rendered from
     the fitted scene and compared pixel by pixel with the recording (blur

@@ -8,7 +8,7 @@ from ..fit.linear import fit_linear
 from ..fit.markers import load_observations
 from ..fit.output import fit_summary, geometry_document
 from ..scan import load_scan
-from .options import output_option, write_fit
+from .options import centre_model_option, output_option, write_fit
 
 
 @click.command("fit-linear")
@@ -21,7 +21,8 @@ from .options import output_option, write_fit
               help="Robust loss; residuals beyond 3 sigma are reported as outliers.")
 @click.option("--marker-id", type=int, default=None, help="Which tracked sphere to use (default: the longest track).")
 @click.option("--use-flagged", is_flag=True, help="Also use truncated/overlapping/cluttered markers.")
-def command(scan, markers, output, axis_scales, axis_tilts, loss, marker_id, use_flagged):
+@centre_model_option
+def command(scan, markers, output, axis_scales, axis_tilts, loss, marker_id, use_flagged, centre_model):
     """Estimate source, detector position and orientation from SCAN's sphere track.
 
     The lab frame: origin at the sphere when every axis reads zero, axes
@@ -35,9 +36,9 @@ def command(scan, markers, output, axis_scales, axis_tilts, loss, marker_id, use
     """
     s = load_scan(scan)
     obs = load_observations(markers, s, use_flagged=use_flagged)
-    fit = fit_linear(s, obs, axis_scales=axis_scales, axis_tilts=axis_tilts, loss=loss, marker_id=marker_id)
+    fit = fit_linear(s, obs, axis_scales=axis_scales, axis_tilts=axis_tilts, loss=loss, marker_id=marker_id, centre_model=centre_model)
     res = fit.result
-    summary = fit_summary(res, fit.residual_px, start=fit.start, loss=loss)
+    summary = fit_summary(res, fit.residual_px, centre_model=centre_model, start=fit.start, loss=loss)
     axes = [{"name": n, "type": "linear", "direction": d, "scale": float(sc)}
             for n, d, sc in zip(fit.model.axis_names, fit.directions, fit.scales)]
     residuals = [{"frame": int(f), "id": int(i), "x": float(xy[0]), "y": float(xy[1]), "dx": float(d[0]),

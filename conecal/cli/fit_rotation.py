@@ -10,7 +10,7 @@ from ..fit.rotation import fit_rotation
 from ..geometry import ConeGeometry
 from ..jsonio import read_json
 from ..scan import load_scan
-from .options import output_option, write_fit
+from .options import centre_model_option, output_option, write_fit
 
 
 @click.command("fit-rotation")
@@ -23,7 +23,8 @@ from .options import output_option, write_fit
 @click.option("--refine-geometry", is_flag=True, help="Also refine source and detector (bundle adjustment).")
 @click.option("--loss", type=click.Choice(["linear", "soft_l1", "huber", "cauchy"]), default="linear", show_default=True)
 @click.option("--use-flagged", is_flag=True, help="Also use truncated/overlapping/cluttered markers.")
-def command(scans, markers, geometry, output, refine_geometry, loss, use_flagged):
+@centre_model_option
+def command(scans, markers, geometry, output, refine_geometry, loss, use_flagged, centre_model):
     """Estimate every moving rotary axis of SCANS (direction and a point on
     it, lab frame) and the spheres' positions on the sample.
 
@@ -48,9 +49,9 @@ def command(scans, markers, geometry, output, refine_geometry, loss, use_flagged
     if g.shape != (s.config.detector.rows, s.config.detector.cols):
         raise click.BadParameter(f"detector shape {list(g.shape)} differs from the scan's", param_hint="--geometry")
     obs = [load_observations(m, sc, use_flagged=use_flagged) for m, sc in zip(markers, loaded)]
-    fit = fit_rotation(loaded, obs, g, geometry_doc=gdoc, refine_geometry=refine_geometry, loss=loss)
+    fit = fit_rotation(loaded, obs, g, geometry_doc=gdoc, refine_geometry=refine_geometry, loss=loss, centre_model=centre_model)
     res = fit.result
-    summary = fit_summary(res, fit.residual_px, start="triangulation", loss=loss)
+    summary = fit_summary(res, fit.residual_px, centre_model=centre_model, start="triangulation", loss=loss)
     axes = []
     for a in fit.axes:
         d = {"name": a.name, "type": a.type, "direction": a.direction}

@@ -10,6 +10,11 @@ import click
 # detect, fit-*, report: where the result goes
 output_option = click.option("-o", "--output", "output", required=True, type=click.Path(dir_okay=False),
                              help="Output JSON file (written atomically).")
+# fit-linear, fit-rotation: what a marker's measured centre is predicted as
+centre_model_option = click.option(
+    "--centre-model", type=click.Choice(["centroid", "projection"]), default="centroid", show_default=True,
+    help="centroid: the attenuation centroid of the sphere's shadow (what detect measures); projection: the "
+         "projected sphere centre, as the papers model it (leaves out the ellipse-centre bias; for comparison).")
 # detect, simulate: threads for frames
 workers_option = click.option("--workers", type=click.IntRange(1, 64), default=2, show_default=True,
                               help="Frames processed in parallel.")

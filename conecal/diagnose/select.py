@@ -20,9 +20,10 @@ import numpy as np
 from scipy.optimize import least_squares
 
 from ..effects.imaging import DetectorDistortion
-from ..effects.motion import AxisNonOrthogonality, AxisScale, Backlash, DetectorDrift, EncoderLatency, FocalSpotDrift, RotaryWobble
+from ..effects.motion import (AxisNonOrthogonality, AxisScale, Backlash, DetectorDrift, EncoderLatency, FocalSpotDrift,
+                              RotaryRunout, RotaryWobble)
 from ..kinematics import LinearAxis, RotaryAxis
-from .model import CentroidPull
+from .model import CentroidPull, EllipseCentreBias
 from .structure import structure_tests
 
 
@@ -93,11 +94,19 @@ def candidates(model) -> list[Candidate]:
                                  lambda x, n=a.name: RotaryWobble(n, float(np.hypot(*x)), float(np.degrees(np.arctan2(x[1], x[0])))),
                                  lambda x, s, n=a.name: f"axis {n} wobbles by {np.hypot(*x):.4f} ± {np.hypot(*s) / np.sqrt(2):.4f} deg "
                                                         f"once per turn (phase {np.degrees(np.arctan2(x[1], x[0])):.0f} deg)"))
+            out += _runout_candidates(model, a)
         if (v > 0).any() and (v < 0).any():
             out.append(Candidate(f"backlash:{a.name}", ("amount",), (unit,), (0.005,),
                                  lambda x, n=a.name: Backlash(n, float(x[0])),
                                  lambda x, s, n=a.name, u=unit: f"axis {n} has {x[0]:+.4f} ± {s[0]:.4f} {u} backlash "
                                                                 "(error follows the direction of motion)"))
+    if getattr(model, "centre_model", "centroid") == "projection":
+        d_mm = 2 * float(np.median(model.radii))
+        out.append(Candidate("ellipse_centre_bias", ("fraction",), ("",), (0.05,),
+                             lambda x: EllipseCentreBias(float(x[0])),
+                             lambda x, s, d=d_mm: f"the measured centres are the shadows' attenuation centroids, not the "
+                                                  f"projected sphere centres: {x[0]:.3f} ± {s[0]:.3f} of the ellipse-centre "
+                                                  f"bias of {d:.2f} mm spheres (fit with --centre-model centroid)"))
     if moving:   # a lag ghost drags each centre back towards the previous frame's
         out.append(Candidate("detector_lag", ("pull",), ("",), (0.005,),
                              lambda x: CentroidPull(float(x[0])),
@@ -109,6 +118,45 @@ def candidates(model) -> list[Candidate]:
                              lambda x, s: f"frames were exposed {1e3 * x[0]:+.1f} ± {1e3 * s[0]:.1f} ms after the "
                                           "encoders were read (error ∝ velocity)"))
     return out
+
+
+RUNOUT_HARMONICS = (2, 3)
+_TIMES = {2: "twice", 3: "three times"}
+
+
+def _across_beam(model, a) -> float:
+    """Angle (rad) in the axis' (e1, e2) plane of the direction across the
+    beam: the runout the projections see (a fixed sensitive direction)."""
+    from ..geometry.rotations import orthonormal_complement
+
+    e1, e2 = orthonormal_complement(a.direction)
+    t = np.cross(a.direction, model.geometry.source - a.point)
+    return float(np.arctan2(t @ e2, t @ e1))
+
+
+def _runout(axis: str, k: int, beta: float, x) -> RotaryRunout:
+    """Runout ``x[0] cos(k q) + x[1] sin(k q)`` (mm) along the direction at
+    ``beta``: a line traced k times per turn, i.e. equal forward and
+    backward whirls."""
+    A = float(np.hypot(*x))
+    phi = float(np.arctan2(-x[1], x[0]))
+    return RotaryRunout(axis, A / 2, float(np.degrees(phi + beta)), k, A / 2, float(np.degrees(phi - beta)))
+
+
+def _runout_candidates(model, a) -> list[Candidate]:
+    """Runout at 2 and 3 times per turn, across the beam. A circular scan
+    sees the axis' sideways motion only across the beam (along it, only
+    through a magnification change of ~1e-4); and once per turn it is a
+    centring error, which the spheres' fitted positions absorb."""
+    beta = _across_beam(model, a)
+    return [Candidate(f"rotary_runout:{a.name}:{k}", ("across_cos", "across_sin"), ("mm", "mm"), (0.002, 0.002),
+                      lambda x, n=a.name, k=k: _runout(n, k, beta, x),
+                      lambda x, s, n=a.name, k=k:
+                      f"axis {n} runs out {_TIMES[k]} per turn: its line moves across the beam by "
+                      f"{1e3 * np.hypot(*x):.1f} ± {1e3 * float(np.sqrt(np.mean(np.square(s)))):.1f} µm "
+                      f"(amplitude; first peak at {n} = {(np.degrees(np.arctan2(x[1], x[0])) / k) % (360 / k):.0f} deg, "
+                      f"then every {360 / k:.0f} deg)")
+            for k in RUNOUT_HARMONICS]
 
 
 def _fit(model, cands, select=None, x0=None):

@@ -120,6 +120,70 @@ class RotaryWobble(Effect):
         return world.replace(chain=world.chain.replace_axis(self.axis, w))
 
 
+@dataclass(frozen=True, eq=False)
+class RunoutRotaryAxis(RotaryAxis):
+    """A rotary axis whose line moves sideways ``harmonic`` times per turn.
+
+    At reading q the axis is displaced, perpendicular to its direction, by
+    ``forward * (cos(k q + fp) e1 + sin(k q + fp) e2) + backward * (cos(k q + bp) e1 - sin(k q + bp) e2)``
+    (mm; e1, e2 from :func:`orthonormal_complement`): a forward and a
+    backward whirl, together any ellipse traced k times per turn.
+    """
+
+    harmonic: int = 2
+    forward: float = 0.0
+    forward_phase: float = 0.0     # rad
+    backward: float = 0.0
+    backward_phase: float = 0.0    # rad
+
+    def transforms(self, q_deg):
+        T = RotaryAxis.transforms(self, q_deg)
+        q = np.deg2rad(np.asarray(q_deg, dtype=float))
+        e1, e2 = orthonormal_complement(self.direction)
+        kf, kb = self.harmonic * q + self.forward_phase, self.harmonic * q + self.backward_phase
+        d = (self.forward * np.cos(kf) + self.backward * np.cos(kb))[..., None] * e1 \
+            + (self.forward * np.sin(kf) - self.backward * np.sin(kb))[..., None] * e2
+        return RigidTransform(T.R, T.t + d)
+
+
+@register
+@dataclass(frozen=True, eq=False)
+class RotaryRunout(Effect):
+    """The rotary axis' line moves sideways, ``harmonic`` times per turn
+    (radial error motion; amplitudes in mm, phases in deg).
+
+    Once per turn (harmonic 1) a forward whirl turns with the table: it is a
+    fixed offset of everything on the table, which the fitted sphere
+    positions take up exactly (ISO 230-7 removes this fundamental as a
+    centring error for the same reason); only its backward part, and the
+    higher harmonics, show.
+    """
+
+    axis: str = "theta"
+    amplitude: float = 0.005
+    phase: float = 0.0
+    harmonic: int = 2
+    backward: float = 0.0
+    backward_phase: float = 0.0
+    name = "rotary_runout"
+    physics = ("a rotation stage's bearing is not round (its balls or races are lobed), so the axis of "
+               "rotation moves sideways as the table turns, a few times per turn")
+    units = {"amplitude": "mm", "phase": "deg", "harmonic": "per turn", "backward": "mm", "backward_phase": "deg"}
+
+    def __post_init__(self):
+        if int(self.harmonic) != self.harmonic or self.harmonic < 1:
+            raise ValueError(f"harmonic must be a whole number >= 1, not {self.harmonic}")
+
+    def apply(self, world):
+        a = _axis(world, self.axis)
+        if not isinstance(a, RotaryAxis):
+            raise InputError(f"effect rotary_runout: axis {self.axis!r} is not rotary")
+        r = RunoutRotaryAxis(a.name, a.direction, a.point, harmonic=int(self.harmonic), forward=self.amplitude,
+                             forward_phase=np.deg2rad(self.phase), backward=self.backward,
+                             backward_phase=np.deg2rad(self.backward_phase))
+        return world.replace(chain=world.chain.replace_axis(self.axis, r))
+
+
 @register
 @dataclass(frozen=True, eq=False)
 class EncoderLatency(Effect):

@@ -192,9 +192,17 @@ class LinearFit:
 
 
 def fit_linear(scan, obs: Observations, *, axis_scales: bool = False, axis_tilts: bool = False,
-               loss: str = "linear", marker_id: int | None = None) -> LinearFit:
+               loss: str = "linear", marker_id: int | None = None, centre_model: str = "centroid") -> LinearFit:
     """Fit source and detector (and optionally the axes' scales and tilts) to
-    the track of one sphere. Raises FitError when it cannot."""
+    the track of one sphere. Raises FitError when it cannot.
+
+    ``centre_model``: "centroid" (what detect measures) or "projection" (the
+    projected sphere centre, the papers' model, which leaves out the
+    shadow's ellipse-centre bias)."""
+    from .rotation import CENTRE_MODELS
+
+    if centre_model not in CENTRE_MODELS:
+        raise InputError(f"centre model must be one of {', '.join(CENTRE_MODELS)}, not {centre_model!r}")
     axes = scan.config.axes
     if any(a.type != "linear" for a in axes):
         raise InputError(f"{scan.root / 'scan.yaml'}: axes: fit-linear needs linear axes only; use fit-rotation")
@@ -211,8 +219,9 @@ def fit_linear(scan, obs: Observations, *, axis_scales: bool = False, axis_tilts
         raise InputError(f"{scan.root / 'scan.yaml'}: markers: fit-linear needs markers.diameter")
     base = scan.nominal_geometry()
     dirs = np.array([np.asarray(a.direction, float) / np.linalg.norm(a.direction) for a in axes])
+    # a sphere of radius 0 has no shadow bias: the point model
     model = LinearModel(base, dirs, tuple(a.name for a in axes), scan.log.readings[obs.row],
-                        scan.config.markers.diameter / 2)
+                        scan.config.markers.diameter / 2 if centre_model == "centroid" else 0.0)
     names = model.parameter_names()
     n = model.n_axes
     x_nom = model.nominal_vector()

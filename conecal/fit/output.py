@@ -12,7 +12,7 @@ from .core import FitResult
 GEOMETRY_FORMAT = "conecal-geometry/1"
 
 
-def fit_summary(res: FitResult, residual_px: np.ndarray, *, start: str, loss: str) -> dict:
+def fit_summary(res: FitResult, residual_px: np.ndarray, *, start: str, loss: str, centre_model: str = "centroid") -> dict:
     free = [n for n, f in zip(res.names, res.free) if f]
     return {
         "parameters": res.parameters_dict(),
@@ -24,6 +24,8 @@ def fit_summary(res: FitResult, residual_px: np.ndarray, *, start: str, loss: st
         "function_evaluations": res.nfev,
         "start": start,
         "loss": loss,
+        # what each measured marker centre was predicted as (see --centre-model)
+        "centre_model": centre_model,
         "outliers": int(res.outliers.reshape(-1, 2).any(axis=1).sum()) if res.outliers.size else 0,
         "undetermined": res.undetermined,
         "null_combinations": res.null_combinations,

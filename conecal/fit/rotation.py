@@ -52,7 +52,7 @@ class ChainModel:
 
     def __init__(self, geometry: ConeGeometry, axes: list[AxisSpec], free_axes: list[int], readings: np.ndarray,
                  sphere_of_obs: np.ndarray, n_spheres: int, references, radii: np.ndarray,
-                 refine_geometry: bool = False):
+                 refine_geometry: bool = False, centroid: bool = True):
         self.g0 = geometry
         self.axes = axes
         self.free_axes = list(free_axes)
@@ -61,6 +61,9 @@ class ChainModel:
         self.n_spheres = n_spheres
         self.references = sorted({int(r) for r in np.atleast_1d(references)})
         self.radii = np.asarray(radii, float)
+        # False: the papers' point model (the projected sphere centre), which
+        # leaves out the shadow's ellipse-centre bias
+        self.centroid = centroid
         self.refine = refine_geometry
         self.detector = DetectorParams(geometry)
         self.frames = {j: orthonormal_complement(axes[j].direction) for j in self.free_axes}
@@ -144,7 +147,7 @@ class ChainModel:
     def predict(self, x) -> np.ndarray:
         X, *_ = self._forward(x)
         g = self.geometry(x)
-        return g.project(X) + shadow_bias(g, X, self.radii[self.sph])
+        return g.project(X) + shadow_bias(g, X, self.radii[self.sph]) if self.centroid else g.project(X)
 
     def lab_points(self, x) -> np.ndarray:
         return self._forward(x)[0]
@@ -157,7 +160,7 @@ class ChainModel:
         # the shadow offset follows the points: its derivative by central differences
         r = self.radii[self.sph]
         h = 1e-4
-        for k in range(3):
+        for k in range(3 if self.centroid else 0):
             e = np.zeros(3)
             e[k] = h
             Jx[:, :, k] += (shadow_bias(g, X + e, r, True) - shadow_bias(g, X - e, r, True)) / (2 * h)
@@ -192,13 +195,16 @@ class ChainModel:
         if self.refine:
             x9 = x[-9:]
             Jg = self.detector.jacobian(g, X, x9)
-            for i in range(9):
+            for i in range(9 if self.centroid else 0):
                 e = np.zeros(9)
                 e[i] = 1e-3
                 gp, gm = self.detector.geometry(x9 + e), self.detector.geometry(x9 - e)
                 Jg[:, :, i] += (shadow_bias(gp, X, r, True) - shadow_bias(gm, X, r, True)) / 2e-3
             J[:, :, -9:] = Jg
         return J
+
+
+CENTRE_MODELS = ("centroid", "projection")
 
 
 def chain_specs(scan, geometry_doc: dict | None) -> list[AxisSpec]:
@@ -276,9 +282,15 @@ def _declared_radius(scan, geometry: ConeGeometry, position, radius_px) -> float
 
 
 def fit_rotation(scans, obs_list, geometry: ConeGeometry, *, geometry_doc: dict | None = None,
-                 refine_geometry: bool = False, loss: str = "linear", min_frames: int = 3) -> RotationFit:
+                 refine_geometry: bool = False, loss: str = "linear", min_frames: int = 3,
+                 centre_model: str = "centroid") -> RotationFit:
     """Calibrate the moving rotary axes and the sphere positions of one or
     several scans of one manipulator (one bundle adjustment).
+
+    ``centre_model``: "centroid" predicts what ``detect`` measures, the
+    attenuation centroid of each shadow; "projection" predicts the projected
+    sphere centre, as the papers do (``diagnose`` then finds the
+    ellipse-centre bias left out).
 
     Each scan has its own spheres and its own reference sphere (at the lab
     origin at zero readings). The chain is the first scan's; the others may
@@ -286,6 +298,8 @@ def fit_rotation(scans, obs_list, geometry: ConeGeometry, *, geometry_doc: dict 
     ``refine_geometry`` source and detector are estimated jointly: add a
     linear raster scan to pin them down.
     """
+    if centre_model not in CENTRE_MODELS:
+        raise InputError(f"centre model must be one of {', '.join(CENTRE_MODELS)}, not {centre_model!r}")
     if not isinstance(scans, (list, tuple)):
         scans, obs_list = [scans], [obs_list]
     axes = chain_specs(scans[0], geometry_doc)
@@ -337,7 +351,8 @@ def fit_rotation(scans, obs_list, geometry: ConeGeometry, *, geometry_doc: dict 
     obs = Observations(np.concatenate(rows), np.concatenate(frames), np.concatenate(ids_out),
                        np.vstack(xy), np.concatenate(sig))
     sph = np.concatenate(sph)
-    model = ChainModel(geometry, axes, free, q_all[obs.row], sph, len(labels), refs, np.array(radii), refine_geometry)
+    model = ChainModel(geometry, axes, free, q_all[obs.row], sph, len(labels), refs, np.array(radii), refine_geometry,
+                       centre_model == "centroid")
     pnames, units = model.names(), model.units()
     x0 = np.zeros(model.size())
     x0[model.n_axis_par:model.n_axis_par + model.n_sph_par] = np.array(p0)[model.others].ravel()
