@@ -100,7 +100,7 @@ def candidates(model) -> list[Candidate]:
                                  lambda x, n=a.name: Backlash(n, float(x[0])),
                                  lambda x, s, n=a.name, u=unit: f"axis {n} has {x[0]:+.4f} ± {s[0]:.4f} {u} backlash "
                                                                 "(error follows the direction of motion)"))
-    if getattr(model, "centre_model", "centroid") == "projection":
+    if model.centre_model == "projection":
         d_mm = 2 * float(np.median(model.radii))
         out.append(Candidate("ellipse_centre_bias", ("fraction",), ("",), (0.05,),
                              lambda x: EllipseCentreBias(float(x[0])),
