@@ -73,6 +73,23 @@ def test_joseph_radon_of_a_constant_image():
     assert np.isclose(out[0].sum() * 0.4, 100 * 120 * 0.16, rtol=0.02)
 
 
+def test_squared_joseph_sums_give_the_variance_of_each_line_sum():
+    """radon_joseph(var, squared=True) against the spread of the Radon
+    transforms of many noise images with that pixel variance."""
+    rng = np.random.default_rng(5)
+    yy, xx = np.mgrid[:40, :48]
+    var = (0.5 + np.exp(-((xx - 30) ** 2 + (yy - 15) ** 2) / 80.0)).astype(np.float32)
+    ang = np.array([0.0, 0.3, np.pi / 4, 1.2, np.pi / 2])
+    args = (0.5, 0.5, 23.5, 19.5, np.cos(ang), np.sin(ang), -12.0, 0.5, 49)
+    sums = np.array([kernels.radon_joseph((rng.normal(size=var.shape) * np.sqrt(var)).astype(np.float32), *args)
+                     for _ in range(1500)])
+    pred = kernels.radon_joseph(var, *args, True)
+    inside = pred > 0.2 * pred.max()
+    ratio = sums.var(axis=0)[inside] / pred[inside]
+    # 1500 draws: each ratio is known to about 3.7 % (1 sigma)
+    assert abs(np.median(ratio) - 1) < 0.02 and np.abs(ratio - 1).max() < 0.2
+
+
 def test_holder_hull_found_only_for_a_dense_border_object():
     img = np.zeros((120, 120), np.float32)
     yy, xx = np.mgrid[:120, :120]
@@ -115,6 +132,37 @@ def test_jacobian_matches_finite_differences(small_circular):
         Jn = (prob.residuals(q1) - prob.residuals(q2)) / (2 * h)
         # bilinear look-ups: piecewise-smooth, so the match is to a few per cent
         assert np.linalg.norm(J[:, k] - Jn) < 0.05 * np.linalg.norm(Jn) + 1e-9, NAMES[k]
+
+
+def test_noise_weighted_residuals_and_their_jacobian(small_circular):
+    """With noise tables, residuals are disagreements over their noise sigma
+    at the current lines (unit weights otherwise), and the Jacobian carries
+    the sigma's own derivative."""
+    from conecal.scan import load_scan
+
+    scan = load_scan(small_circular)
+    opt = rpgrid.RPOptions(pairs=100, planes_per_pair=16)
+    nom = scan.nominal_geometry()
+    tab = rpgrid.build_tables((scan.stack.read(k) for k in range(scan.n_frames)), scan.n_frames, nom, opt, noise=True)
+    assert tab.variance.shape[:2] == (scan.n_frames, opt.n_angles // rpgrid.NOISE_ANGLE_STEP)
+    assert abs(np.median(tab.variance[tab.variance > 0]) - 1) < 1e-6
+    prob = rpgrid.RPProblem(nom, scan.nominal_transforms(), tab, [0, 1, 0], opt)
+    p = np.array([2.7, -1.6, 0.8, 0.4, -0.3])
+    prob.select(p)
+    assert prob.noise_weighted and np.all(prob._kept[5] == 1.0)
+    f = rpgrid._frame(misaligned(nom, p), tab.ref)
+    S = prob._plane_variance(f, prob._kept)
+    assert np.all(S > 0)
+    with rpgrid._bilinear(prob):
+        assert not prob.noise_weighted
+    J = prob.jacobian(p)
+    for k in range(5):
+        h = 1e-5
+        q1, q2 = p.copy(), p.copy()
+        q1[k] += h
+        q2[k] -= h
+        Jn = (prob.residuals(q1) - prob.residuals(q2)) / (2 * h)
+        assert np.linalg.norm(J[:, k] - Jn) < 1e-3 * np.linalg.norm(Jn) + 1e-9, NAMES[k]
 
 
 def test_small_scan_recovers_shift_and_rotation(small_circular, tmp_path):

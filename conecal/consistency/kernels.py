@@ -21,7 +21,7 @@ def cosine_weight(img, pu, pv, c_ref, r_ref, pp_u, pp_v, D):
 
 
 @njit(cache=True, parallel=True)
-def radon_joseph(img, pu, pv, c_ref, r_ref, cos_a, sin_a, s0, ds, n_s):
+def radon_joseph(img, pu, pv, c_ref, r_ref, cos_a, sin_a, s0, ds, n_s, squared=False):
     """2D Radon transform by Joseph's method.
 
     The line ``u cos(a) + v sin(a) = s`` (u, v in mm from pixel (c_ref,
@@ -29,6 +29,10 @@ def radon_joseph(img, pu, pv, c_ref, r_ref, cos_a, sin_a, s0, ds, n_s):
     image interpolated linearly across it, so every line sees a smooth
     sampling of the image (pixel-driven splatting aliases at rational
     slopes). Returns (n_a, n_s) in image units * mm.
+
+    ``squared``: the same sums with every weight squared, image units *
+    mm^2: for an image of independent pixel variances, the variance of
+    each line's sum.
     """
     n_a = cos_a.shape[0]
     out = np.zeros((n_a, n_s), np.float32)
@@ -39,17 +43,18 @@ def radon_joseph(img, pu, pv, c_ref, r_ref, cos_a, sin_a, s0, ds, n_s):
         for k in range(n_s):
             s = s0 + k * ds
             if abs(ca) >= abs(sa):     # steep line: one sample per row
-                out[a, k] = _line_sum(img, s, sa, ca, pv, pu, r_ref, c_ref)
+                out[a, k] = _line_sum(img, s, sa, ca, pv, pu, r_ref, c_ref, squared)
             else:                      # flat line: one sample per column (the transposed case)
-                out[a, k] = _line_sum(img_t, s, ca, sa, pu, pv, c_ref, r_ref)
+                out[a, k] = _line_sum(img_t, s, ca, sa, pu, pv, c_ref, r_ref, squared)
     return out
 
 
 @njit(cache=True)
-def _line_sum(img, s, a_major, a_minor, p_major, p_minor, ref_major, ref_minor):
+def _line_sum(img, s, a_major, a_minor, p_major, p_minor, ref_major, ref_minor, squared):
     """Integral along ``a_minor * x_minor + a_major * x_major = s`` of
     ``img[major, minor]`` (mm from (ref_major, ref_minor), pitches p_*), one
-    sample per major index, linear across the minor one; |a_minor| >= |a_major|."""
+    sample per major index, linear across the minor one; |a_minor| >= |a_major|.
+    ``squared``: weights squared (see :func:`radon_joseph`)."""
     n_major, n_minor = img.shape
     m_at0 = (s + ref_major * p_major * a_major) / (a_minor * p_minor) + ref_minor
     dm = -p_major * a_major / (a_minor * p_minor)
@@ -69,8 +74,12 @@ def _line_sum(img, s, a_major, a_minor, p_major, p_minor, ref_major, ref_minor):
         if i >= n_minor - 1:
             i = n_minor - 2
         f = m - i
-        acc += img[j, i] * (1.0 - f) + img[j, i + 1] * f
-    return acc * p_major / abs(a_minor)
+        if squared:
+            acc += img[j, i] * (1.0 - f) * (1.0 - f) + img[j, i + 1] * f * f
+        else:
+            acc += img[j, i] * (1.0 - f) + img[j, i + 1] * f
+    step = p_major / abs(a_minor)
+    return acc * step * step if squared else acc * step
 
 
 @njit(cache=True, inline="always")
@@ -158,19 +167,16 @@ def _keys(f):
 
 
 @njit(cache=True)
-def _row_cubic(tables, view, row, sk, s0, ds, n_a, n_s):
-    """Value and d/ds of one table row at ``sk`` (Catmull-Rom along s); rows
-    outside [0, n_a) wrap with T(alpha + pi, s) = -T(alpha, -s)."""
-    sign = 1.0
+def _row_cubic(tables, view, row, sk, s0, ds, n_a, n_s, flip):
+    """Value and d/d(sk) of one table row at ``sk`` (Catmull-Rom along s);
+    rows outside [0, n_a) wrap with T(alpha + pi, s) = flip * T(alpha, -s)."""
+    wrapped = row < 0 or row >= n_a
     if row < 0:
         row += n_a
-        sk = -sk
-        sign = -1.0
     elif row >= n_a:
         row -= n_a
-        sk = -sk
-        sign = -1.0
-    xs = (sk - s0) / ds
+    x = -sk if wrapped else sk
+    xs = (x - s0) / ds
     i = int(np.floor(xs))
     f = xs - i
     w0, w1, w2, w3, d0, d1, d2, d3 = _keys(f)
@@ -179,15 +185,16 @@ def _row_cubic(tables, view, row, sk, s0, ds, n_a, n_s):
     for t, (w, d) in enumerate(((w0, d0), (w1, d1), (w2, d2), (w3, d3))):
         k = i - 1 + t
         if 0 <= k < n_s:
-            x = tables[view, row, k]
-            val += w * x
-            der += d * x
-    # a flip of s comes with a flip of sign: the derivative keeps its sign
-    return sign * val, der / ds
+            y = tables[view, row, k]
+            val += w * y
+            der += d * y
+    if wrapped:
+        return flip * val, -flip * der / ds
+    return val, der / ds
 
 
 @njit(cache=True, parallel=True)
-def lookup_cubic(tables, view, alpha, s, s0, ds):
+def lookup_cubic(tables, view, alpha, s, s0, ds, flip=-1.0):
     """As :func:`lookup`, with Catmull-Rom interpolation along both alpha and s.
 
     Bilinear look-ups make the cost piecewise quadratic: each plane's
@@ -196,6 +203,9 @@ def lookup_cubic(tables, view, alpha, s, s0, ds):
     slope of its shallow directions (v against the tilt about u), so that a
     Gauss-Newton refinement stops on a ripple. Cubic look-ups are C1 and
     their error is an order of magnitude smaller.
+
+    ``flip``: T(alpha + pi, s) = flip * T(alpha, -s); -1 for the odd
+    derivative tables, +1 for even ones (the noise variance tables).
     """
     n = view.shape[0]
     _, n_a, n_s = tables.shape
@@ -204,13 +214,16 @@ def lookup_cubic(tables, view, alpha, s, s0, ds):
     d_alpha = np.zeros(n)
     d_s = np.zeros(n)
     for k in prange(n):
-        ia, fa, sk, sign = _half_turn(alpha[k], s[k], da)
+        ia, fa, sk, half = _half_turn(alpha[k], s[k], da)
+        sign = flip if half < 0 else 1.0
+        # d/ds in the caller's s: the half turn flips s
+        ds_sign = -sign if half < 0 else 1.0
         w0, w1, w2, w3, e0, e1, e2, e3 = _keys(fa)
-        v0, s0d = _row_cubic(tables, view[k], ia - 1, sk, s0, ds, n_a, n_s)
-        v1, s1d = _row_cubic(tables, view[k], ia, sk, s0, ds, n_a, n_s)
-        v2, s2d = _row_cubic(tables, view[k], ia + 1, sk, s0, ds, n_a, n_s)
-        v3, s3d = _row_cubic(tables, view[k], ia + 2, sk, s0, ds, n_a, n_s)
+        v0, s0d = _row_cubic(tables, view[k], ia - 1, sk, s0, ds, n_a, n_s, flip)
+        v1, s1d = _row_cubic(tables, view[k], ia, sk, s0, ds, n_a, n_s, flip)
+        v2, s2d = _row_cubic(tables, view[k], ia + 1, sk, s0, ds, n_a, n_s, flip)
+        v3, s3d = _row_cubic(tables, view[k], ia + 2, sk, s0, ds, n_a, n_s, flip)
         val[k] = sign * (w0 * v0 + w1 * v1 + w2 * v2 + w3 * v3)
         d_alpha[k] = sign * (e0 * v0 + e1 * v1 + e2 * v2 + e3 * v3) / da
-        d_s[k] = w0 * s0d + w1 * s1d + w2 * s2d + w3 * s3d
+        d_s[k] = ds_sign * (w0 * s0d + w1 * s1d + w2 * s2d + w3 * s3d)
     return val, d_alpha, d_s

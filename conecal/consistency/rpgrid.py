@@ -43,12 +43,13 @@ import time
 from dataclasses import dataclass, field
 
 import numpy as np
+from scipy.ndimage import correlate1d
 
 from ..errors import FitError, InputError
 from ..geometry import ConeGeometry
 from . import kernels
 from .misalignment import NAMES, UNITS, misaligned
-from .radon import s_derivative
+from .radon import derivative_kernel, s_derivative
 
 DEFAULT_RANGES = {"shift_u_px": 20.0, "shift_v_px": 20.0, "eta_deg": 3.0, "theta_deg": 3.0, "phi_deg": 3.0}
 
@@ -78,6 +79,9 @@ class RPOptions:
     # table look-ups of the refinements and sigmas; the grids, which only
     # need the basin, look up bilinearly (3x faster)
     interpolation: str = "cubic"        # or "linear"
+    # divide each plane's disagreement by its noise sigma at the lines (see
+    # RPProblem.noise_weighted); needs the second pass's noise tables
+    noise_weights: bool = True
     grid_cost: str = "normalised"       # or "ssd"; normalised: sum (a-b)^2 / sum (a^2+b^2)
     undetermined_sigma: dict = field(default_factory=lambda: {"shift_u_px": 2.0, "shift_v_px": 2.0, "eta_deg": 0.5,
                                                               "theta_deg": 1.0, "phi_deg": 1.0})
@@ -96,6 +100,10 @@ class ViewTables:
     edge_flags: np.ndarray      # (n_views, perimeter) bool: object at the region's border
     seconds: float
     holder_hulls: np.ndarray = None   # (n_views, V, 2) mm from ref; NaN where no holder
+    # the tables' noise variance (arbitrary global scale), coarser: every
+    # NOISE_ANGLE_STEP-th angle, every NOISE_S_STEP-th offset; None when not made
+    variance: np.ndarray = None
+    var_ds: float = 0.0
 
     @property
     def holder_views(self) -> int:
@@ -107,7 +115,7 @@ class ViewTables:
 
     @property
     def nbytes(self) -> int:
-        return int(self.tables.nbytes + self.edge_flags.nbytes)
+        return int(self.tables.nbytes + self.edge_flags.nbytes + (0 if self.variance is None else self.variance.nbytes))
 
 
 def _view_table(img, g_weights: ConeGeometry, ref, rect, angles, s0, ds, n_s, smooth_px):
@@ -120,6 +128,35 @@ def _view_table(img, g_weights: ConeGeometry, ref, rect, angles, s0, ds, n_s, sm
     weighted = kernels.cosine_weight(sub, pu, pv, cr, rr, (pp[0] - ref[0]) * pu, (pp[1] - ref[1]) * pv, D)
     radon = kernels.radon_joseph(weighted, pu, pv, cr, rr, np.cos(angles), np.sin(angles), s0, ds, n_s)
     return s_derivative(radon, ds, smooth_px * min(pu, pv) / ds)
+
+
+NOISE_ANGLE_STEP, NOISE_S_STEP = 4, 2
+
+
+def _view_variance(img, g_weights: ConeGeometry, ref, rect, angles, s0, ds, n_s, smooth_px):
+    """Noise variance of one view's table, up to a global factor.
+
+    Quantum-limited: a pixel's line integral p = -ln(I/I0) has variance
+    proportional to 1/I = exp(p). The cosine weights enter squared, the
+    Radon sums with squared weights (:func:`kernels.radon_joseph`), the
+    s-derivative as the sum of its squared taps (neighbouring offsets taken
+    as independent). It varies slowly, so every NOISE_ANGLE_STEP-th angle
+    and NOISE_S_STEP-th offset are kept.
+    """
+    c0, c1, r0, r1 = rect
+    sub = np.asarray(img[r0:r1 + 1, c0:c1 + 1], np.float32)
+    var = np.exp(np.clip(sub, -2.0, 20.0)).astype(np.float32)
+    pu, pv = g_weights.pixel_pitch
+    pp = g_weights.principal_point
+    D = abs(float(np.dot(g_weights.detector_origin - g_weights.source, g_weights.normal)))
+    cr, rr = ref[0] - c0, ref[1] - r0
+    args = (pu, pv, cr, rr, (pp[0] - ref[0]) * pu, (pp[1] - ref[1]) * pv, D)
+    var = kernels.cosine_weight(kernels.cosine_weight(var, *args), *args)
+    a = angles[::NOISE_ANGLE_STEP]
+    radon = kernels.radon_joseph(var, pu, pv, cr, rr, np.cos(a), np.sin(a), s0, ds, n_s, True)
+    taps = derivative_kernel(smooth_px * min(pu, pv) / ds)
+    out = correlate1d(radon, taps**2, axis=-1, mode="constant") / ds**2
+    return out[:, ::NOISE_S_STEP]
 
 
 def _edge_flags(img, rect, level):
@@ -182,8 +219,10 @@ def _holder_hull(img, rect, ratio: float):
     return hull
 
 
-def build_tables(images, n_views: int, g_weights: ConeGeometry, opt: RPOptions, progress=None) -> ViewTables:
-    """Tables for ``n_views`` frames yielded one at a time by ``images``."""
+def build_tables(images, n_views: int, g_weights: ConeGeometry, opt: RPOptions, progress=None,
+                 noise: bool = False) -> ViewTables:
+    """Tables for ``n_views`` frames yielded one at a time by ``images``
+    (and their noise variance, with ``noise``)."""
     rows, cols = g_weights.shape
     rect = tuple(int(x) for x in opt.crop) if opt.crop is not None else (0, cols - 1, 0, rows - 1)
     c0, c1, r0, r1 = rect
@@ -202,8 +241,14 @@ def build_tables(images, n_views: int, g_weights: ConeGeometry, opt: RPOptions, 
     flags = np.empty((n_views, 2 * (c1 - c0 + 1) + 2 * (r1 - r0 + 1)), bool)
     # holder hulls in mm from the tables' origin, padded by repeating the last vertex
     hulls = np.full((n_views, HULL_VERTICES, 2), np.nan)
+    variance = None
+    if noise:
+        n_av = len(angles[::NOISE_ANGLE_STEP])
+        variance = np.empty((n_views, n_av, len(range(0, n_s, NOISE_S_STEP))), np.float32)
     for k, img in enumerate(images):
         tables[k] = _view_table(img, g_weights, ref, rect, angles, s0, ds, n_s, opt.smooth_px)
+        if noise:
+            variance[k] = _view_variance(img, g_weights, ref, rect, angles, s0, ds, n_s, opt.smooth_px)
         flags[k] = _edge_flags(img, rect, opt.truncation_level)
         if opt.exclude_holder:
             hull = _holder_hull(img, rect, opt.holder_ratio)
@@ -213,7 +258,10 @@ def build_tables(images, n_views: int, g_weights: ConeGeometry, opt: RPOptions, 
                 hulls[k, len(mm):] = mm[-1]
         if progress:
             progress(k + 1, n_views)
-    return ViewTables(tables, s0, ds, ref, rect, flags, time.perf_counter() - t0, hulls)
+    if noise:
+        variance /= np.median(variance[variance > 0])
+    return ViewTables(tables, s0, ds, ref, rect, flags, time.perf_counter() - t0, hulls, variance,
+                      ds * NOISE_S_STEP)
 
 
 @dataclass
@@ -423,15 +471,35 @@ class RPProblem:
             return val
         J = np.empty((len(val), len(dframes)))
         for k, df in enumerate(dframes):
-            da = m @ df.u
-            db = m @ df.v
-            dc = m @ df.Q
-            dh = (a * da + b * db) / h
-            dalpha = (a * db - b * da) / h**2
-            dsl = -dc / h + c * dh / h**2
+            dalpha, dsl = self._line_derivatives(m, a, b, c, h, df)
             dspp = dsl - (df.pp[0] * ca + df.pp[1] * sa) - (-f.pp[0] * sa + f.pp[1] * ca) * dalpha
             dF = 0.0 if frozen else 2 * spp * dspp / f.D**2 - 2 * spp**2 * df.D / f.D**3
             J[:, k] = dF * T + F * (T_a * dalpha + T_s * dsl)
+        return val, J
+
+    @staticmethod
+    def _line_derivatives(m, a, b, c, h, df: _Frame):
+        """d(alpha), d(s) of the lines of normals ``m`` along one parameter
+        (``df``: the detector quantities' derivatives)."""
+        da = m @ df.u
+        db = m @ df.v
+        dc = m @ df.Q
+        dh = (a * da + b * db) / h
+        return (a * db - b * da) / h**2, -dc / h + c * dh / h**2
+
+    def _variance(self, f: _Frame, views, m, F, dframes=None):
+        """Noise variance of each plane's value ``F * T`` (the tables' global
+        scale), and its derivatives with ``dframes``."""
+        a, b, c, h, alpha, s = self._lines(f, m)
+        V, V_a, V_s = kernels.lookup_cubic(self.tab.variance, views, alpha, s, self.tab.s0, self.tab.var_ds, 1.0)
+        F2 = (self._grangeat(f, m) if F is None else F) ** 2
+        val = F2 * V
+        if dframes is None:
+            return val
+        J = np.empty((len(val), len(dframes)))
+        for k, df in enumerate(dframes):
+            dalpha, dsl = self._line_derivatives(m, a, b, c, h, df)
+            J[:, k] = F2 * (V_a * dalpha + V_s * dsl)
         return val, J
 
     def _dframes(self, p, f: _Frame, step=1e-6):
@@ -468,6 +536,11 @@ class RPProblem:
         # c: a typical signal level, not the median: with truncation most
         # planes may miss the object, and noise-only planes must not set the scale
         weight = 1.0 / (np.percentile(size, 75) + size) if size.size else 1.0
+        if self.tab.variance is not None and self.opt.noise_weights:
+            # weights from the noisy values themselves correlate with the
+            # noise at the lines and bias the answer (v by 0.3 px with a dense
+            # holder at 1e5 photons); the noise sigma weights instead
+            weight = np.ones(len(vi))
         return (vi, mi, vj, mj, perm, weight, Fi, Fj)
 
     def _grangeat(self, f: _Frame, m):
@@ -482,12 +555,38 @@ class RPProblem:
         b = self._values(f, vj, mj, F=Fj)
         out = a.copy()
         out[perm] -= b
-        out *= weight
         if not energy:
-            return out
+            if self.noise_weighted:
+                out /= np.sqrt(self._plane_variance(f, arrays))
+            return out * weight
+        out *= weight
         bw = np.empty_like(b)
         bw[perm] = b
         return out, float(np.sum((a * weight) ** 2 + (bw * weight) ** 2))
+
+    @property
+    def noise_weighted(self) -> bool:
+        """Whether residuals are divided by their noise sigma at the current lines.
+
+        The expected squared disagreement of a plane is its signal part plus
+        the two look-ups' noise variances, and those vary with where the
+        lines fall (more attenuation, more noise): unweighted least squares
+        move the lines towards quiet parts of the views, a bias of the order
+        of the noise (0.5 px in v with a dense holder at 1e5 photons). Divided
+        by the noise sigma at the lines themselves, every plane's noise part
+        is 1 wherever they fall, and the bias is gone."""
+        return self.tab.variance is not None and self.opt.noise_weights and self.lookup is kernels.lookup_cubic
+
+    def _plane_variance(self, f: _Frame, arrays, dframes=None):
+        vi, mi, vj, mj, perm, weight, Fi, Fj = arrays
+        out = self._variance(f, vi, mi, Fi, dframes)
+        other = self._variance(f, vj, mj, Fj, dframes)
+        if dframes is None:
+            out[perm] += other
+            return np.maximum(out, 1e-12)
+        out[0][perm] += other[0]
+        out[1][perm] += other[1]
+        return np.maximum(out[0], 1e-12), out[1]
 
     def normalised_cost(self, p, arrays=None) -> float:
         """c_RP: the squared disagreement over the planes' squared values.
@@ -505,9 +604,14 @@ class RPProblem:
         vi, mi, vj, mj, perm, weight, Fi, Fj = self._kept if arrays is None else arrays
         f = _frame(misaligned(self.nominal, p), self.tab.ref)
         dfs = self._dframes(p, f)
-        _, J = self._values(f, vi, mi, True, dfs, F=Fi)
-        _, Jj = self._values(f, vj, mj, True, dfs, F=Fj)
+        d, J = self._values(f, vi, mi, True, dfs, F=Fi)
+        b, Jj = self._values(f, vj, mj, True, dfs, F=Fj)
         J[perm] -= Jj
+        if self.noise_weighted:
+            # r = d / sqrt(S): dr = dd / sqrt(S) - d dS / (2 S^1.5)
+            d[perm] -= b
+            S, JS = self._plane_variance(f, arrays if arrays is not None else self._kept, dfs)
+            J = J / np.sqrt(S)[:, None] - (0.5 * d / S**1.5)[:, None] * JS
         return J * np.reshape(weight, (-1, 1))
 
     def subset(self, n: int, seed: int = 0):
@@ -889,7 +993,8 @@ def run(scan, opt: RPOptions, progress=None) -> tuple[RPResult, RPProblem]:
     fit1, _ = refine(prob1, opt, p_grid)
     del prob1, tab1
     t2 = time.perf_counter()
-    tab2 = build_tables(images(range(n)), n, misaligned(nominal, fit1.x), opt, progress=prog(len(first) + 10))
+    tab2 = build_tables(images(range(n)), n, misaligned(nominal, fit1.x), opt, progress=prog(len(first) + 10),
+                        noise=opt.noise_weights)
     prob = RPProblem(nominal, T_all, tab2, axis, opt)
     t3 = time.perf_counter()
     fit, scale = refine(prob, opt, fit1.x)
