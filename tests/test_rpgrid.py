@@ -165,6 +165,34 @@ def test_noise_weighted_residuals_and_their_jacobian(small_circular):
         assert np.linalg.norm(J[:, k] - Jn) < 1e-3 * np.linalg.norm(Jn) + 1e-9, NAMES[k]
 
 
+def test_band_of_lines_meets_flagged_border_stretches_like_its_lines_do(small_circular):
+    """The truncation test of a band of parallel lines (one interval per
+    side and prefix sums) agrees with sweeping single lines across it finely."""
+    from conecal.scan import load_scan
+
+    scan = load_scan(small_circular)
+    opt = rpgrid.RPOptions(pairs=200, planes_per_pair=16)
+    nom = scan.nominal_geometry()
+    tab = rpgrid.build_tables((scan.stack.read(k) for k in range(scan.n_frames)), scan.n_frames, nom, opt)
+    rng = np.random.default_rng(3)
+    tab.edge_flags[:] = False
+    for k in range(scan.n_frames):           # a few flagged stretches per view, anywhere on the border
+        for _ in range(3):
+            a = rng.integers(0, tab.edge_flags.shape[1] - 12)
+            tab.edge_flags[k, a:a + rng.integers(1, 12)] = True
+    prob = rpgrid.RPProblem(nom, scan.nominal_transforms(), tab, [0, 1, 0], opt)
+    f = rpgrid._frame(nom, tab.ref)
+    *_, alpha, s = prob._lines(f, prob.mi)
+    margin = 4.0 * tab.ds
+    band = prob._band_truncated(prob.vi, alpha, s, margin)
+    swept = np.zeros_like(band)
+    for off in np.linspace(-margin, margin, 401):
+        swept |= prob._exits(prob.vi, alpha, s + off)[1]
+    assert 0.05 < band.mean() < 0.95
+    assert np.all(band[swept])                               # nothing the sweep finds is missed
+    assert np.mean(band != swept) < 2e-3                     # and little beyond it (between sweep steps)
+
+
 def test_small_scan_recovers_shift_and_rotation(small_circular, tmp_path):
     out = tmp_path / "rp.json"
     r = CliRunner().invoke(cli, ["rp-grid", str(small_circular), "-o", str(out), "--pairs", "400",

@@ -382,9 +382,7 @@ class RPProblem:
             inside, trunc = self._exits(views, alpha, s)
             keep &= inside
             truncated |= trunc
-            # sampled finely enough that a line sweeping past a flagged stretch hits it
-            for off in np.linspace(-margin, margin, 2 * int(np.ceil(margin / self.tab.ds)) + 1):
-                truncated |= self._exits(views, alpha, s + off)[1]
+            truncated |= self._band_truncated(views, alpha, s, margin)
             holder |= self._near_holder(views, alpha, s, margin)
         if self.opt.exclude_truncated:
             keep &= ~truncated
@@ -452,6 +450,43 @@ class RPProblem:
                 hits += on
                 trunc |= on & flags[np.arange(len(s)), off + idx]
         return hits >= 2, trunc
+
+    def _band_truncated(self, views, alpha, s, margin):
+        """Whether any line parallel to each line within ``margin`` (mm)
+        leaves the region through a flagged border stretch.
+
+        The band's lines meet each side of the region in one interval; the
+        flags within it are counted from per-view prefix sums, so the whole
+        band costs what one line does."""
+        tab = self.tab
+        c0, c1, r0, r1 = tab.rect
+        pu, pv = self.nominal.pixel_pitch
+        ul, uh = (c0 - 0.5 - tab.ref[0]) * pu, (c1 + 0.5 - tab.ref[0]) * pu
+        vl, vh = (r0 - 0.5 - tab.ref[1]) * pv, (r1 + 0.5 - tab.ref[1]) * pv
+        ncol, nrow = c1 - c0 + 1, r1 - r0 + 1
+        if getattr(self, "_flag_cum", None) is None:
+            self._flag_cum = np.concatenate([np.zeros((len(tab.edge_flags), 1), np.int32),
+                                             np.cumsum(tab.edge_flags, axis=1, dtype=np.int32)], axis=1)
+        cum = self._flag_cum
+        # a line parallel to a side meets it nowhere or all along it: a tiny
+        # cosine sends the interval's ends far out, and the clip keeps the side
+        ca = np.cos(alpha)
+        sa = np.sin(alpha)
+        ca = np.where(np.abs(ca) < 1e-12, 1e-12, ca)
+        sa = np.where(np.abs(sa) < 1e-12, 1e-12, sa)
+        out = np.zeros(len(s), bool)
+        sides = ((vl, sa, ca, ul, uh, pu, 0, ncol), (vh, sa, ca, ul, uh, pu, ncol, ncol),
+                 (ul, ca, sa, vl, vh, pv, 2 * ncol, nrow), (uh, ca, sa, vl, vh, pv, 2 * ncol + nrow, nrow))
+        for fixed, k_fixed, k_free, lo, hi, pitch, off, n in sides:
+            # side: coordinate `fixed` across it; the line meets it where the free coordinate is
+            x1 = (s - margin - fixed * k_fixed) / k_free
+            x2 = (s + margin - fixed * k_fixed) / k_free
+            a, b = np.maximum(np.minimum(x1, x2), lo), np.minimum(np.maximum(x1, x2), hi)
+            met = a <= b
+            i0 = np.clip(np.floor((a - lo) / pitch), 0, n - 1).astype(int)
+            i1 = np.clip(np.floor((b - lo) / pitch), 0, n - 1).astype(int)
+            out |= met & (cum[views, off + i1 + 1] > cum[views, off + i0])
+        return out
 
     # -- cost, residuals, Jacobian ------------------------------------------------------------------
 
