@@ -20,6 +20,7 @@ fit-pose), diagnosed on the poses.
     python benchmarks/bench_diagnose.py            # 5 seeds per effect, ~25 min on 2 cores
     python benchmarks/bench_diagnose.py --seeds 1 --only clean blur detector_lag
     python benchmarks/bench_diagnose.py --only clean_arm joint_offset robot_deflection arm_encoder_latency joint_backlash
+    python benchmarks/bench_diagnose.py --only clean_arm_frames arm_blur arm_beam_hardening arm_detector_lag arm_scatter
     python benchmarks/bench_diagnose.py --lag-demo  # lag through detect, detect --lag, refit (~1 min)
 """
 
@@ -66,6 +67,13 @@ EFFECTS = {
     "robot_deflection": ("robot", "robot_deflection:compliance=0.001,payload_kg=2", {"robot_deflection"}),
     "arm_encoder_latency": ("robot", "encoder_latency:latency=0.025", {"encoder_latency"}),
     "joint_backlash": ("robot", "backlash:axis=q3,amount=0.005", {"backlash:q3"}),
+    # the image level on fit-pose results: the arm's frames rendered in full (640², ~50 spheres
+    # each), through detect and fit-pose; every frame's holder re-rendered from its fitted pose
+    "clean_arm_frames": ("robot_frames", None, set()),
+    "arm_blur": ("robot_frames", "blur:sigma_px=0.4", {"blur"}),
+    "arm_beam_hardening": ("robot_frames", "beam_hardening:beta=0.05", {"beam_hardening"}),
+    "arm_detector_lag": ("robot_frames", "detector_lag:fraction=0.05", {"detector_lag"}),
+    "arm_scatter": ("robot_frames", "scatter:fraction=0.02", {"scatter"}),
 }
 # fit-pose's accuracy per pose component (benchmarks/bench_pose.py: mean
 # errors 0.004 deg, 0.008 mm as 3-vector norms)
@@ -81,8 +89,8 @@ def make(root: Path, name: str, spec, seed: int, noise: float = 0.02, photons: f
     ``conecal detect`` on the frames instead). A robot scan gets true poses
     plus fit-pose's noise as its poses.json instead (``noise=None``: frames
     rendered in full, then detect and fit-pose with the true geometry)."""
-    if kind == "robot":
-        return make_arm(root, name, spec, seed, full=noise is None)
+    if kind.startswith("robot"):
+        return make_arm(root, name, spec, seed, full=noise is None or kind == "robot_frames")
     if kind == "linear":
         sc = linear_raster(seed, rows=256, cols=256, pitch=0.4, steps=(4.0, 4.0, 8.0), counts=(5, 5, 3), dt=2.0)
     elif kind == "rotation_point":
@@ -112,15 +120,17 @@ def make(root: Path, name: str, spec, seed: int, noise: float = 0.02, photons: f
     return path
 
 
-def make_arm(root: Path, name: str, spec, seed: int, full: bool = False) -> Path:
+def make_arm(root: Path, name: str, spec, seed: int, full: bool = False, frames: dict | None = None) -> Path:
     """A robot sweep scan and its poses.json: true holder poses plus Gaussian
     noise of ``POSE_NOISE`` (the frames are rendered on a small detector, which
     diagnose does not read; the poses carry the full 640² geometry), or, with
-    ``full``, the frames in full through detect and fit-pose."""
+    ``full``, the frames in full through detect and fit-pose. ``frames``:
+    scenario settings (rows, cols, pitch, n_frames) to render real frames
+    with true poses plus noise (the image level, isolated from detect)."""
     from conecal.geometry import rotvec_to_matrix
 
     def scenario(**kw):
-        sc = robot_helix(seed, trajectory="sweep", **kw)
+        sc = robot_helix(seed, trajectory="sweep", **{**(frames or {}), **kw})
         if spec:
             sc.apply_effects([parse_effect(spec)])
         return sc
@@ -138,23 +148,27 @@ def make_arm(root: Path, name: str, spec, seed: int, full: bool = False) -> Path
             if out.exit_code != 0:
                 raise RuntimeError(out.output)
         return path
-    write_scan(scenario(rows=48, cols=48, pitch=2.5, body="none"), path, seed=seed)
+    write_scan(sc if frames else scenario(rows=48, cols=48, pitch=2.5, body="none"), path, seed=seed)
     T = sc.world.transforms()
     rng = np.random.default_rng(seed + 99)
-    frames = []
+    poses = []
     for k in range(sc.n_frames):
         dR = rotvec_to_matrix(np.deg2rad(POSE_NOISE[0]) * rng.normal(size=3))
-        frames.append({"frame": k, "status": "ok", "R": (dR @ T.R[k]).tolist(),
-                       "t": (T.t[k] + POSE_NOISE[1] * rng.normal(size=3)).tolist(),
-                       "sigma_rotation_deg": [POSE_NOISE[0]] * 3, "sigma_translation_mm": [POSE_NOISE[1]] * 3})
-    (path / "fit.json").write_text(json.dumps({"format": "conecal-poses/1", **sc.geometry.to_dict(), "frames": frames}))
+        poses.append({"frame": k, "status": "ok", "R": (dR @ T.R[k]).tolist(),
+                      "t": (T.t[k] + POSE_NOISE[1] * rng.normal(size=3)).tolist(),
+                      "sigma_rotation_deg": [POSE_NOISE[0]] * 3, "sigma_translation_mm": [POSE_NOISE[1]] * 3})
+    (path / "fit.json").write_text(json.dumps({"format": "conecal-poses/1", **sc.geometry.to_dict(), "frames": poses}))
     return path
 
 
-def run_one(path: Path, kind: str = "rotation", image: bool = True) -> dict:
+def run_one(path: Path, kind: str = "rotation", image: bool = True, extra: tuple = ()) -> dict:
+    """Fit (unless a robot scan: its fit.json is there), then diagnose with ``extra`` options."""
     r = CliRunner()
-    if kind == "robot":
-        out = r.invoke(cli, ["diagnose", str(path / "fit.json"), str(path), "-o", str(path / "diag.json")])
+    if kind.startswith("robot"):
+        # the image level needs real frames; "robot" scans carry 48² stand-ins
+        real = image and kind == "robot_frames"
+        out = r.invoke(cli, ["diagnose", str(path / "fit.json"), str(path), "-o", str(path / "diag.json")]
+                       + ([] if real else ["--no-image"]) + list(extra))
         if out.exit_code != 0:
             raise RuntimeError(out.output)
         return json.loads((path / "diag.json").read_text())
@@ -167,7 +181,7 @@ def run_one(path: Path, kind: str = "rotation", image: bool = True) -> dict:
     if out.exit_code != 0:
         raise RuntimeError(out.output)
     out = r.invoke(cli, ["diagnose", str(path / "fit.json"), str(path), "-o", str(path / "diag.json")]
-                   + ([] if image else ["--no-image"]))
+                   + ([] if image else ["--no-image"]) + list(extra))
     if out.exit_code != 0:
         raise RuntimeError(out.output)
     return json.loads((path / "diag.json").read_text())

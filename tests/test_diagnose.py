@@ -72,6 +72,20 @@ def test_point_model_fit_offers_the_ellipse_centre_bias(tmp_path):
     c = next(c for c in d["candidates"] if c["effect"] == "ellipse_centre_bias")
     assert abs(c["parameters"]["fraction"] - 1) < 3 * c["sigma"]["fraction"]
     assert bench.named(d) == []
+    # what it can say instead: how far the point model moved the fit. The
+    # centroid-model fit of the same markers is where the sphere positions go
+    pm = d["point_model"]
+    assert pm["absorbed_fraction"] > 0.99 and 0.01 < pm["bias_rms_px"] < 0.03 and "centroid" in d["verdict"]
+    r = CliRunner().invoke(cli, ["fit-rotation", str(path), "--markers", str(path / "markers.json"), "--geometry",
+                                 str(path / "geometry.json"), "-o", str(path / "fit_centroid.json")])
+    assert r.exit_code == 0, r.output
+    point = {s["id"]: np.array(s["position"]) for s in json.loads((path / "fit.json").read_text())["spheres"]}
+    for s in json.loads((path / "fit_centroid.json").read_text())["spheres"]:
+        if s.get("reference"):
+            continue
+        predicted = np.array([pm["parameter_shifts"][f"sphere{s['id']}_{c}"]["value"] for c in "xyz"])
+        moved = np.array(s["position"]) - point[s["id"]]
+        assert np.linalg.norm(moved) > 1e-3 and np.abs(predicted - moved).max() < 1e-4   # mm
 
 
 def test_structure_tests_hold_their_false_alarm_rate(tmp_path):
@@ -142,6 +156,23 @@ def test_blind_arm_diagnosis(tmp_path, name):
     assert abs(value - true) < 4 * sigma
     refitted = np.array(d["refitted_robot"]["base"])
     assert refitted.shape == (4, 4) and np.allclose(refitted[:3, :3] @ refitted[:3, :3].T, np.eye(3), atol=1e-9)
+
+
+def test_image_level_on_a_fit_pose_result(tmp_path):
+    """The image level re-renders every frame's holder (~50 spheres, a PMMA
+    body behind them) from its pose and compares it with the recording:
+    blur wider than stated is named and sized, nothing else is claimed, and
+    the shadows then match to the noise. Poses: the truth plus fit-pose's
+    noise (the benchmark runs detect and fit-pose too)."""
+    path = bench.make_arm(tmp_path, "arm_blur", "blur:sigma_px=0.4", seed=21,
+                          frames={"rows": 640, "cols": 640, "pitch": 0.2, "n_frames": 24})
+    d = bench.run_one(path, "robot_frames", extra=("--image-frames", "4"))
+    img = d["image_level"]
+    assert [e["effect"] for e in img["effects"]] == ["blur"] and bench.named(d) == ["blur"], d["verdict"]
+    assert img["n_patches"] >= 150 and not img["skipped"].get("clutter in the background")
+    total = np.hypot(0.5, 0.4)
+    assert abs(img["effects"][0]["parameters"]["blur"] - total) < 0.02 * total
+    assert img["chi2_per_dof_after"] < min(1.1, img["chi2_per_dof_before"] - 0.05)
 
 
 def test_fit_pose_result_needs_its_robot_scan(tmp_path):

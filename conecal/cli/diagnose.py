@@ -17,8 +17,9 @@ from .options import info, output_option, progress_bar
 @click.option("--image/--no-image", "image_level", default=True, show_default=True,
               help="Also compare every marker's recorded shadow with the one the fitted scene renders "
                    "(blur, beam hardening, detector lag, scatter).")
-@click.option("--image-frames", type=click.IntRange(4, 100000), default=48, show_default=True,
-              help="Frames (evenly spread) whose marker patches the image level uses.")
+@click.option("--image-frames", type=click.IntRange(4, 100000), default=None,
+              help="Frames (evenly spread) whose marker patches the image level uses [default: 48; 12 on a "
+                   "fit-pose result, whose frames hold ~50 spheres each].")
 def command(result, scan, output, alpha, image_level, image_frames):
     """Find the physical effect that RESULT (fit-rotation, fit-linear or
     fit-pose on SCAN) left out, model it, and show the fit improve.
@@ -40,7 +41,8 @@ def command(result, scan, output, alpha, image_level, image_frames):
     On a fit-pose result the observations are the holder's poses against
     the arm's model (joint log through the DH table, registration refitted):
     joint zero offsets, the arm yielding under the holder's weight, encoder
-    latency and joint backlash (geometric level only).
+    latency and joint backlash; at the image level every frame's holder is
+    rendered from its fitted pose.
 
     \b
     Examples:
@@ -57,20 +59,25 @@ def command(result, scan, output, alpha, image_level, image_frames):
     s = load_scan(scan)
     pose = doc["format"].startswith("conecal-poses")
     if pose:
-        from ..diagnose.pose import PoseModel
+        from ..diagnose.pose import PoseModel, PoseScene
 
         model = PoseModel(doc, s, result)
-        image_level = False   # the image level re-renders fit-rotation and fit-linear scenes only
+        # the image level re-renders every frame's holder from its fitted pose
+        scene = PoseScene(doc, s, result) if image_level else None
     else:
-        model = ResultModel(doc, s, result)
-    tie = (lambda evals: scene_chi2(model, s, evals)) if image_level else None
+        model = scene = ResultModel(doc, s, result)
+    if image_frames is None:   # a holder frame has ~50 spheres, a rotation frame a handful
+        image_frames = 12 if pose else 48
+    tie = (lambda evals: scene_chi2(model, s, evals)) if image_level and not pose else None
     with progress_bar("diagnose: geometry") as prog:
         out, final = diagnose(model, alpha=alpha, progress=prog, tie_breaker=tie)
     image = None
     if image_level:
         with progress_bar("diagnose: image") as prog:
-            image = diagnose_image(model, s, geometric_effects=final.get("effects") or (), geometric_base=final["x9"],
-                                   max_frames=image_frames, progress=prog)
+            # robot effects move the poses, which fit-pose measured per frame: nothing to re-render
+            image = diagnose_image(scene, s, geometric_effects=() if pose else final.get("effects") or (),
+                                   geometric_base=None if pose else final["x9"], max_frames=image_frames,
+                                   progress=prog)
         out = merge_levels(out, image)
     units = ({"residual": "px: the holder's mean sphere shadow, fitted pose minus the arm's model",
               "observation": "one frame's pose: rotation vector (rad, lab) and translation (mm, lab), fitted minus "

@@ -252,6 +252,17 @@ class ResultModel:
             xy = xy + bias * shadow_bias(g, X, self.radii[idx])
         return xy + self.offset[idx]
 
+    def lab_centres(self, effects, base, idx) -> tuple[np.ndarray, np.ndarray]:
+        """Lab centres (k, 3) mm of observations ``idx`` and their predicted
+        shadow centres (k, 2) px, with ``effects`` on and the fit moved by ``base``."""
+        chain, _, points = self._apply_base(np.asarray(base, float))
+        T = self.world(effects, chain).transforms()
+        rows = self.obs.row[idx]
+        X = np.einsum("mij,mj->mi", T.R[rows], points[idx]) + T.t[rows]
+        select = np.zeros(len(self.obs.row), bool)
+        select[idx] = True
+        return X, self.predict(effects, base, select)
+
     def geometry_after(self, base) -> ConeGeometry:
         return self._apply_base(np.asarray(base, float))[1]
 

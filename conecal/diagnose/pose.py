@@ -225,3 +225,57 @@ def candidates(model: PoseModel) -> list:
                              lambda x, s: f"frames were exposed {1e3 * x[0]:+.1f} ± {1e3 * s[0]:.1f} ms after the "
                                           "joints were read (error ∝ joint speed)"))
     return out
+
+
+@dataclass
+class SceneObservations:
+    row: np.ndarray        # (m,) index into the scan's log rows
+    frame: np.ndarray      # (m,)
+    ids: np.ndarray        # (m,) holder sphere ids
+    xy: np.ndarray         # (m, 2) px, where the fitted pose projects each sphere
+
+
+class PoseScene:
+    """A fit-pose result as the image level sees it: in every frame with an
+    ok pose, every sphere of the holder placed by that pose (lab, mm) and
+    projected with the result's geometry.
+
+    Every sphere is listed, not only those fit-pose identified: a sphere it
+    left out still casts a shadow that a neighbour's patch must account for.
+    There is nothing to refit at the scene level (``n_base`` is 0): each
+    patch's shadow is re-centred by the image level itself."""
+
+    stage = "fit-pose"
+    n_base = 0
+
+    def __init__(self, doc: dict, scan, path="result"):
+        if scan.phantom is None or scan.config.markers is None:
+            raise InputError(f"{scan.root / 'scan.yaml'}: markers.phantom: the image level of a fit-pose result "
+                             "needs the holder's phantom.csv")
+        self.geometry = ConeGeometry.from_dict(doc)
+        self.times = np.asarray(scan.log.time, float)
+        row_of = {int(f): i for i, f in enumerate(scan.log.frame)}
+        ok = [f for f in doc.get("frames", []) if f.get("status") == "ok" and int(f["frame"]) in row_of]
+        ids = np.asarray(scan.phantom.ids, int)
+        P = np.asarray(scan.phantom.positions, float)
+        rows, frames, sid, X = [], [], [], []
+        for f in ok:
+            R, t = np.asarray(f["R"], float), np.asarray(f["t"], float)
+            rows.append(np.full(len(ids), row_of[int(f["frame"])]))
+            frames.append(np.full(len(ids), int(f["frame"])))
+            sid.append(ids)
+            X.append(P @ R.T + t)
+        if not ok:
+            raise InputError(f"{path}: no frame with an ok pose")
+        self.X = np.concatenate(X)
+        self.obs = SceneObservations(row=np.concatenate(rows), frame=np.concatenate(frames), ids=np.concatenate(sid),
+                                     xy=self.geometry.project(self.X))
+        d = float(scan.config.markers.diameter)
+        self.doc = {"spheres": [{"id": int(i), "diameter": d} for i in ids]}
+
+    def geometry_after(self, base) -> ConeGeometry:
+        return self.geometry
+
+    def lab_centres(self, effects, base, idx) -> tuple[np.ndarray, np.ndarray]:
+        """Lab centres (k, 3) mm of entries ``idx`` and their projections (k, 2) px."""
+        return self.X[idx], self.obs.xy[idx]
