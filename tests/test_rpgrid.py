@@ -24,6 +24,14 @@ def gaussian_projection(g, c, sig, amp):
     return amp * np.sqrt(2 * np.pi) * sig * np.exp(-dist2 / (2 * sig**2))
 
 
+def _central_difference(prob, p, k, h):
+    """d residuals / d p[k] by central differences of step ``h``."""
+    q1, q2 = p.copy(), p.copy()
+    q1[k] += h
+    q2[k] -= h
+    return (prob.residuals(q1) - prob.residuals(q2)) / (2 * h)
+
+
 def test_grangeat_relation_on_a_tilted_detector():
     """Table value times Grangeat's factor equals d/drho of the 3D Gaussian's plane integral."""
     nom = ConeGeometry.nominal(sod=300, sdd=600, shape=(200, 240), pixel_pitch=(0.4, 0.4))
@@ -125,11 +133,7 @@ def test_jacobian_matches_finite_differences(small_circular):
     prob.select(p)
     J = prob.jacobian(p)
     for k in range(5):
-        h = 1e-4
-        q1, q2 = p.copy(), p.copy()
-        q1[k] += h
-        q2[k] -= h
-        Jn = (prob.residuals(q1) - prob.residuals(q2)) / (2 * h)
+        Jn = _central_difference(prob, p, k, 1e-4)
         # bilinear look-ups: piecewise-smooth, so the match is to a few per cent
         assert np.linalg.norm(J[:, k] - Jn) < 0.05 * np.linalg.norm(Jn) + 1e-9, NAMES[k]
 
@@ -157,11 +161,7 @@ def test_noise_weighted_residuals_and_their_jacobian(small_circular):
         assert not prob.noise_weighted
     J = prob.jacobian(p)
     for k in range(5):
-        h = 1e-5
-        q1, q2 = p.copy(), p.copy()
-        q1[k] += h
-        q2[k] -= h
-        Jn = (prob.residuals(q1) - prob.residuals(q2)) / (2 * h)
+        Jn = _central_difference(prob, p, k, 1e-5)
         assert np.linalg.norm(J[:, k] - Jn) < 1e-3 * np.linalg.norm(Jn) + 1e-9, NAMES[k]
 
 
