@@ -232,7 +232,7 @@ def main(argv=None):
         return lag_demo()
     which = {k: v for k, v in EFFECTS.items() if not args.only or k in args.only}
     confusion = {e: Counter() for e in which}
-    n_eff = ok_eff = n_clean = clean_claims = 0
+    n_eff = ok_eff = ok_or_ambiguous = n_clean = clean_claims = 0
     ratios, image_ratios, sizes = [], [], {}
     t0 = time.perf_counter()
     with tempfile.TemporaryDirectory() as tmp:
@@ -248,6 +248,10 @@ def main(argv=None):
                 else:
                     n_eff += 1
                     ok_eff += len(got) == 1 and got[0] in good
+                    # the right effect among those diagnose said it cannot tell apart
+                    said = set(d.get("ambiguous_with") or []) | set((d.get("image_level") or {}).get("ambiguous_with")
+                                                                    or [])
+                    ok_or_ambiguous += len(got) == 1 and (got[0] in good or bool(said & good))
                     if got:
                         e = d["effects"][0]
                         sizes.setdefault(name, []).append(
@@ -272,6 +276,8 @@ def main(argv=None):
     if n_eff:
         print(f"correct effect named (and nothing else claimed): {ok_eff}/{n_eff} ({100 * ok_eff / n_eff:.0f} %; "
               "source vs detector drift counted as one, they are reported as ambiguous with each other)")
+        print(f"named, or reported not distinguishable from the one named: {ok_or_ambiguous}/{n_eff} "
+              f"({100 * ok_or_ambiguous / n_eff:.0f} %)")
     if n_clean:
         print(f"effect claimed on clean scans: {clean_claims}/{n_clean} ({100 * clean_claims / n_clean:.0f} %)")
     print(f"marker residual RMS after modelling / noise floor: median {np.median(ratios):.3f}, max {np.max(ratios):.3f}")

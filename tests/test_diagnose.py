@@ -181,3 +181,44 @@ def test_fit_pose_result_needs_its_robot_scan(tmp_path):
     r = CliRunner().invoke(cli, ["diagnose", str(path / "fit.json"), str(rot), "-o", str(tmp_path / "d.json")])
     assert r.exit_code == 2 and "robot scan" in r.output
     assert not (tmp_path / "d.json").exists()
+
+
+def test_image_shift_jacobian_moves_only_the_own_shadow(tmp_path):
+    """The derivative the image level re-centres each shadow with, against
+    finite differences of re-rendering the patch's own sphere moved by ±h px:
+    the previous frame's ghost (lag) and the neighbours stay where they are,
+    so a gradient of the whole modelled patch would be wrong by them."""
+    from conecal.diagnose import ResultModel
+    from conecal.diagnose.image import ImageModel
+    from conecal.jsonio import read_json
+    from conecal.scan import load_scan
+
+    path = bench.make(tmp_path, "detector_lag", "detector_lag:fraction=0.05", seed=14)
+    r = CliRunner().invoke(cli, ["fit-rotation", str(path), "--markers", str(path / "markers.json"), "--geometry",
+                                 str(path / "geometry.json"), "-o", str(tmp_path / "fit.json")])
+    assert r.exit_code == 0, r.output
+    scan = load_scan(path)
+    im = ImageModel(ResultModel(read_json(tmp_path / "fit.json", ("conecal-geometry",)), scan, tmp_path / "fit.json"),
+                    scan, max_frames=6)
+    x = im.full({"mu": 0.5, "blur": 0.6, "beam_hardening": 0.03, "lag": 0.05, "scatter": 0.01})
+    p = next(q for q in im.patches if q.previous is not None)
+    A, gx, gy = im.predict_patch(p, x, im.own_gradient(p))
+    assert np.allclose(A, im.predict_patch(p, x))
+    chord, lab, h = p.chord, p.lab, 0.02
+    for k, g in enumerate((gx, gy)):
+        side = []
+        for sign in (1, -1):
+            d = np.zeros((1, 2))
+            d[0, k] = sign * h
+            moved = im._moved(lab[None], d)[0]
+            own = im._render_patch(p.box, moved, p.sphere_radius)
+            p.chord = own + p.others
+            side.append(im.predict_patch(p, x))
+        p.chord = chord
+        numeric = -(side[0] - side[1]) / (2 * h)      # moving the shadow by +d shifts the image by -d
+        scale = np.abs(numeric).max()
+        assert scale > 0.05
+        assert np.abs(g - numeric).max() < 0.003 * scale
+    # the whole patch's gradient moves the ghost too: off by the lag's share and more
+    gy_all, gx_all = np.gradient(A)
+    assert np.abs(gx_all - gx).max() > 0.03 * np.abs(gx).max()
