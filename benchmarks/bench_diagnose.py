@@ -17,7 +17,8 @@ sweeping its elbow while it turns the helix holder in place, true poses
 plus fit-pose's noise (``--detect``: the frames through detect and
 fit-pose), diagnosed on the poses.
 
-    python benchmarks/bench_diagnose.py            # 5 seeds per effect, ~25 min on 2 cores
+    python benchmarks/bench_diagnose.py            # every kind, 5 seeds each (rotation kinds ~40 s a scan,
+                                                   # arm-frame kinds ~2.5 min: detect and fit-pose at 640²)
     python benchmarks/bench_diagnose.py --seeds 1 --only clean blur detector_lag
     python benchmarks/bench_diagnose.py --only clean_arm joint_offset robot_deflection arm_encoder_latency joint_backlash
     python benchmarks/bench_diagnose.py --only clean_arm_frames arm_blur arm_beam_hardening arm_detector_lag arm_scatter
