@@ -138,14 +138,15 @@ def test_jacobian_matches_finite_differences(small_circular):
         assert np.linalg.norm(J[:, k] - Jn) < 0.05 * np.linalg.norm(Jn) + 1e-9, NAMES[k]
 
 
-def test_noise_weighted_residuals_and_their_jacobian(small_circular):
+@pytest.mark.parametrize("fan_sigma_deg", [0.0, 1.0])
+def test_noise_weighted_residuals_and_their_jacobian(small_circular, fan_sigma_deg):
     """With noise tables, residuals are disagreements over their noise sigma
     at the current lines (unit weights otherwise), and the Jacobian carries
-    the sigma's own derivative."""
+    the sigma's own derivative; also when both are smoothed along the fans."""
     from conecal.scan import load_scan
 
     scan = load_scan(small_circular)
-    opt = rpgrid.RPOptions(pairs=100, planes_per_pair=16)
+    opt = rpgrid.RPOptions(pairs=100, planes_per_pair=16 if fan_sigma_deg == 0 else 144, fan_sigma_deg=fan_sigma_deg)
     nom = scan.nominal_geometry()
     tab = rpgrid.build_tables((scan.stack.read(k) for k in range(scan.n_frames)), scan.n_frames, nom, opt, noise=True)
     assert tab.variance.shape[:2] == (scan.n_frames, opt.n_angles // rpgrid.NOISE_ANGLE_STEP)
@@ -153,7 +154,8 @@ def test_noise_weighted_residuals_and_their_jacobian(small_circular):
     prob = rpgrid.RPProblem(nom, scan.nominal_transforms(), tab, [0, 1, 0], opt)
     p = np.array([2.7, -1.6, 0.8, 0.4, -0.3])
     prob.select(p)
-    assert prob.noise_weighted and np.all(prob._kept[5] == 1.0)
+    assert prob.noise_weighted and np.all(prob._kept.weight == 1.0)
+    assert (prob._kept.fan is not None) == (fan_sigma_deg > 0)
     f = rpgrid._frame(misaligned(nom, p), tab.ref)
     S = prob._plane_variance(f, prob._kept)
     assert np.all(S > 0)
@@ -163,6 +165,32 @@ def test_noise_weighted_residuals_and_their_jacobian(small_circular):
     for k in range(5):
         Jn = _central_difference(prob, p, k, 1e-5)
         assert np.linalg.norm(J[:, k] - Jn) < 1e-3 * np.linalg.norm(Jn) + 1e-9, NAMES[k]
+
+
+def test_fan_smoothing_stays_within_each_pair_and_is_a_gaussian_in_the_planes_angle(small_circular):
+    """Each residual averages planes of its own pair only (the same two views),
+    with Gaussian weights in their angle about the baseline that sum to 1."""
+    from conecal.scan import load_scan
+
+    scan = load_scan(small_circular)
+    opt = rpgrid.RPOptions(pairs=60, planes_per_pair=144, fan_sigma_deg=0.75)
+    nom = scan.nominal_geometry()
+    tab = rpgrid.build_tables((scan.stack.read(k) for k in range(scan.n_frames)), scan.n_frames, nom, opt)
+    prob = rpgrid.RPProblem(nom, scan.nominal_transforms(), tab, [0, 1, 0], opt)
+    idx = np.arange(len(prob.vi))
+    planes = prob._arrays(idx, np.zeros(5))
+    W = planes.fan.tocoo()
+    assert np.allclose(np.asarray(planes.fan.sum(axis=1)).ravel(), 1.0)
+    vi = planes.vi
+    vj = np.empty_like(planes.vj)
+    vj[planes.perm] = planes.vj
+    assert np.all(vi[W.row] == vi[W.col]) and np.all(vj[W.row] == vj[W.col])
+    # within a pair, weights fall off as a Gaussian of the planes' angle
+    cosang = np.abs(np.einsum("ij,ij->i", planes.mi[W.row], planes.mi[W.col]).clip(-1, 1))
+    dk = np.degrees(np.arccos(cosang))
+    diag = np.asarray(planes.fan.diagonal())[W.row]
+    expect = np.exp(-0.5 * (dk / 0.75) ** 2)
+    assert np.allclose(W.data / diag, expect, atol=2e-3)
 
 
 def test_band_of_lines_meets_flagged_border_stretches_like_its_lines_do(small_circular):

@@ -41,6 +41,7 @@ from __future__ import annotations
 import contextlib
 import time
 from dataclasses import dataclass, field
+from typing import NamedTuple
 
 import numpy as np
 from scipy.ndimage import correlate1d
@@ -51,6 +52,8 @@ from . import kernels
 from .misalignment import NAMES, UNITS, misaligned
 from .radon import derivative_kernel, s_derivative
 
+FAN_STEP_DEG = 0.5     # the planes of a pair's fan: one every half degree about the baseline
+
 DEFAULT_RANGES = {"shift_u_px": 20.0, "shift_v_px": 20.0, "eta_deg": 3.0, "theta_deg": 3.0, "phi_deg": 3.0}
 
 
@@ -59,7 +62,16 @@ class RPOptions:
     n_angles: int = 360                 # table angles over [0, pi)
     smooth_px: float = 3.0              # Gaussian sigma of the s-derivative (px): less noise bias
     pairs: int = 1500                   # random view pairs
-    planes_per_pair: int = 48
+    planes_per_pair: int = 48           # at most, evenly over the fan; its full step is FAN_STEP_DEG
+    # Gaussian sigma (deg of the planes' angle about the pair's baseline) of a
+    # smoothing along each pair's fan (0: off). Each view's table is smoothed
+    # along its own pencil of planes, and the two views of one plane have
+    # different pencils: on noiseless data that alone biases theta (-0.67 deg
+    # at 3 px). Along the fan, both views average the same planes with the
+    # same weights: with 1 px tables and 0.5-0.75 deg, theta is off by
+    # < 0.06 deg (benchmarks/rpgrid_fan_smoothing.py). Off by default: at
+    # 1e5 photons the thinner tables' noise outweighs it (RESULTS.md).
+    fan_sigma_deg: float = 0.0
     min_separation_deg: float = 20.0
     ranges: dict = field(default_factory=lambda: dict(DEFAULT_RANGES))   # grid half-widths
     grid_steps: dict = field(default_factory=lambda: {"shift_u_px": 1.0, "shift_v_px": 1.0, "eta_deg": 0.25,
@@ -287,6 +299,21 @@ def _frame(g: ConeGeometry, ref) -> _Frame:
     return _Frame(g.source, Q, g.u, g.v, w, D, np.array([np.dot(foot - Q, g.u), np.dot(foot - Q, g.v)]))
 
 
+class _Planes(NamedTuple):
+    """The planes of one evaluation, in look-up order (see RPProblem._arrays)."""
+
+    vi: np.ndarray          # first view of each plane
+    mi: np.ndarray          # its normal in that view's lab frame
+    vj: np.ndarray          # second view, in its own look-up order
+    mj: np.ndarray
+    perm: np.ndarray        # second-view order -> residual order
+    weight: np.ndarray
+    Fi: np.ndarray | None   # frozen Grangeat factors
+    Fj: np.ndarray | None
+    fan: object = None      # sparse smoothing along each pair's fan, or None
+    fan2: object = None     # its elementwise square (for the noise variance)
+
+
 class RPProblem:
     """The redundant-plane cost of one scan as a function of the five parameters."""
 
@@ -337,10 +364,10 @@ class RPProblem:
         e1 = self.axis - (b @ self.axis)[:, None] * b
         e1 /= np.linalg.norm(e1, axis=1, keepdims=True)
         e2 = np.cross(b, e1)
-        kappa = np.linspace(0, np.pi, 360, endpoint=False)
+        kappa = np.linspace(0, np.pi, round(180 / FAN_STEP_DEG), endpoint=False)
         normals = np.cos(kappa)[None, :, None] * e1[:, None] + np.sin(kappa)[None, :, None] * e2[:, None]
         rho = np.einsum("pkc,pc->pk", normals, S[i])
-        vi, vj, ns = [], [], []
+        vi, vj, ns, ks = [], [], [], []
         K = opt.planes_per_pair
         for p in range(len(pairs)):
             good = np.flatnonzero(np.abs(rho[p]) < r_obj)
@@ -351,7 +378,10 @@ class RPProblem:
             vi.append(np.full(take.size, i[p]))
             vj.append(np.full(take.size, j[p]))
             ns.append(normals[p, take])
+            ks.append(take)
         self.vi = np.concatenate(vi)
+        # the plane's step along its pair's fan (for the smoothing along it)
+        self.fan_index = np.concatenate(ks)
         self.vj = np.concatenate(vj)
         self.normals = np.concatenate(ns)
         self.n_pairs = len(pairs)
@@ -548,8 +578,8 @@ class RPProblem:
                               (fq.D - f.D) / step, (fq.pp - f.pp) / step))
         return out
 
-    def _arrays(self, idx, p):
-        """Look-up order and weights for the planes ``idx``.
+    def _arrays(self, idx, p, fan: bool = True) -> "_Planes":
+        """Look-up order, weights and smoothing along the fans for the planes ``idx``.
 
         Residuals run in order of (view, angle) of their first view, and the
         second view's look-ups are made in their own (view, angle) order and
@@ -557,7 +587,9 @@ class RPProblem:
         times faster than at random. Each plane is weighted by
         1 / (c + mean |value|) (values at ``p``; c their median): the
         interpolation error of a plane grows with its value, and a dense
-        holder's planes would otherwise outweigh the object's."""
+        holder's planes would otherwise outweigh the object's. With ``fan``
+        (whole pairs' planes; not the grids' random subsets) the
+        disagreements are smoothed along each pair's fan (``_fan_matrix``)."""
         f = _frame(misaligned(self.nominal, p), self.tab.ref)
         key_i = self.vi[idx] * 4.0 * self.tab.n_a + (self._lines(f, self.mi[idx])[4] % (2 * np.pi))
         idx = idx[np.argsort(key_i, kind="stable")]
@@ -565,6 +597,7 @@ class RPProblem:
         perm = np.argsort(key_j, kind="stable")
         vi, mi, vj, mj = self.vi[idx], self.mi[idx], self.vj[idx][perm], self.mj[idx][perm]
         Fi, Fj = (self._grangeat(f, mi), self._grangeat(f, mj)) if self.opt.freeze_grangeat else (None, None)
+        W = self._fan_matrix(idx) if fan and self.opt.fan_sigma_deg > 0 else None
         size = np.abs(self._values(f, vi, mi, F=Fi))
         size[perm] += np.abs(self._values(f, vj, mj, F=Fj))
         size *= 0.5
@@ -576,28 +609,59 @@ class RPProblem:
             # noise at the lines and bias the answer (v by 0.3 px with a dense
             # holder at 1e5 photons); the noise sigma weights instead
             weight = np.ones(len(vi))
-        return (vi, mi, vj, mj, perm, weight, Fi, Fj)
+        return _Planes(vi, mi, vj, mj, perm, weight, Fi, Fj, W, None if W is None else W.multiply(W).tocsr())
+
+    def _fan_matrix(self, idx):
+        """Row-normalised Gaussian along each pair's fan over the planes ``idx``
+        (in that order): sigma ``fan_sigma_deg`` of the planes' angle about
+        the baseline; planes dropped by the selection are skipped, not filled."""
+        from scipy import sparse
+
+        sigma = self.opt.fan_sigma_deg
+        reach = int(np.ceil(3 * sigma / FAN_STEP_DEG))
+        pair = self.vi[idx].astype(np.int64) * len(self.R) + self.vj[idx]
+        order = np.lexsort((self.fan_index[idx], pair))
+        pair, k = pair[order], self.fan_index[idx][order]
+        n = len(idx)
+        rows, cols, vals = [np.arange(n)], [np.arange(n)], [np.ones(n)]
+        for d in range(1, reach + 1):
+            a = np.arange(n - d)
+            dk = (k[a + d] - k[a]) * FAN_STEP_DEG
+            ok = (pair[a + d] == pair[a]) & (dk <= 3 * sigma)
+            w = np.exp(-0.5 * (dk[ok] / sigma) ** 2)
+            rows += [a[ok], a[ok] + d]
+            cols += [a[ok] + d, a[ok]]
+            vals += [w, w]
+        # positions in the sorted order -> positions in the residual order
+        pos = np.asarray(order)
+        W = sparse.csr_matrix((np.concatenate(vals), (pos[np.concatenate(rows)], pos[np.concatenate(cols)])),
+                              shape=(n, n))
+        return sparse.diags(1.0 / np.asarray(W.sum(axis=1)).ravel()) @ W
 
     def _grangeat(self, f: _Frame, m):
         a, b, _, h, _, s = self._lines(f, m)
         spp = s - (f.pp[0] * a + f.pp[1] * b) / h
         return 1.0 + spp**2 / f.D**2
 
-    def _residuals(self, p, arrays, energy=False):
-        vi, mi, vj, mj, perm, weight, Fi, Fj = arrays
+    def _residuals(self, p, arrays: "_Planes", energy=False):
+        A = arrays
         f = _frame(misaligned(self.nominal, p), self.tab.ref)
-        a = self._values(f, vi, mi, F=Fi)
-        b = self._values(f, vj, mj, F=Fj)
+        a = self._values(f, A.vi, A.mi, F=A.Fi)
+        b = self._values(f, A.vj, A.mj, F=A.Fj)
         out = a.copy()
-        out[perm] -= b
+        out[A.perm] -= b
+        if A.fan is not None:
+            out = A.fan @ out
         if not energy:
             if self.noise_weighted:
                 out /= np.sqrt(self._plane_variance(f, arrays))
-            return out * weight
-        out *= weight
+            return out * A.weight
+        out *= A.weight
         bw = np.empty_like(b)
-        bw[perm] = b
-        return out, float(np.sum((a * weight) ** 2 + (bw * weight) ** 2))
+        bw[A.perm] = b
+        if A.fan is not None:
+            a, bw = A.fan @ a, A.fan @ bw
+        return out, float(np.sum((a * A.weight) ** 2 + (bw * A.weight) ** 2))
 
     @property
     def noise_weighted(self) -> bool:
@@ -612,15 +676,22 @@ class RPProblem:
         is 1 wherever they fall, and the bias is gone."""
         return self.tab.variance is not None and self.opt.noise_weights and self.lookup is kernels.lookup_cubic
 
-    def _plane_variance(self, f: _Frame, arrays, dframes=None):
-        vi, mi, vj, mj, perm, weight, Fi, Fj = arrays
-        out = self._variance(f, vi, mi, Fi, dframes)
-        other = self._variance(f, vj, mj, Fj, dframes)
+    def _plane_variance(self, f: _Frame, arrays: "_Planes", dframes=None):
+        """Noise variance of each residual before weighting: the two look-ups'
+        variances, through the smoothing along the fan (taken as independent
+        between the fan's planes: their lines are pixels apart)."""
+        A = arrays
+        out = self._variance(f, A.vi, A.mi, A.Fi, dframes)
+        other = self._variance(f, A.vj, A.mj, A.Fj, dframes)
         if dframes is None:
-            out[perm] += other
+            out[A.perm] += other
+            if A.fan2 is not None:
+                out = A.fan2 @ out
             return np.maximum(out, 1e-12)
-        out[0][perm] += other[0]
-        out[1][perm] += other[1]
+        out[0][A.perm] += other[0]
+        out[1][A.perm] += other[1]
+        if A.fan2 is not None:
+            out = (A.fan2 @ out[0], A.fan2 @ out[1])
         return np.maximum(out[0], 1e-12), out[1]
 
     def normalised_cost(self, p, arrays=None) -> float:
@@ -636,24 +707,29 @@ class RPProblem:
         return self._residuals(p, self._kept if arrays is None else arrays)
 
     def jacobian(self, p, arrays=None) -> np.ndarray:
-        vi, mi, vj, mj, perm, weight, Fi, Fj = self._kept if arrays is None else arrays
+        A = self._kept if arrays is None else arrays
         f = _frame(misaligned(self.nominal, p), self.tab.ref)
         dfs = self._dframes(p, f)
-        d, J = self._values(f, vi, mi, True, dfs, F=Fi)
-        b, Jj = self._values(f, vj, mj, True, dfs, F=Fj)
-        J[perm] -= Jj
+        d, J = self._values(f, A.vi, A.mi, True, dfs, F=A.Fi)
+        b, Jj = self._values(f, A.vj, A.mj, True, dfs, F=A.Fj)
+        J[A.perm] -= Jj
         if self.noise_weighted:
             # r = d / sqrt(S): dr = dd / sqrt(S) - d dS / (2 S^1.5)
-            d[perm] -= b
-            S, JS = self._plane_variance(f, arrays if arrays is not None else self._kept, dfs)
+            d[A.perm] -= b
+            if A.fan is not None:
+                d = A.fan @ d
+            S, JS = self._plane_variance(f, A, dfs)
+        if A.fan is not None:
+            J = A.fan @ J
+        if self.noise_weighted:
             J = J / np.sqrt(S)[:, None] - (0.5 * d / S**1.5)[:, None] * JS
-        return J * np.reshape(weight, (-1, 1))
+        return J * np.reshape(A.weight, (-1, 1))
 
     def subset(self, n: int, seed: int = 0):
         """Look-up arrays of ``n`` of the kept planes at random (for the grids)."""
         kept = np.flatnonzero(self.keep)
         rng = np.random.default_rng(seed)
-        return self._arrays(np.sort(rng.choice(kept, size=min(n, kept.size), replace=False)), self._p_sel)
+        return self._arrays(np.sort(rng.choice(kept, size=min(n, kept.size), replace=False)), self._p_sel, fan=False)
 
     def cost(self, p) -> float:
         return self.normalised_cost(p)
@@ -940,7 +1016,7 @@ def jackknife_sigma(prob: RPProblem, x, scale: float, groups: int = 12) -> np.nd
     fraction f of the information moves the estimate with variance
     var * f / (1 - f).
     """
-    vi, _, vj, _, perm, *_ = prob._kept
+    vi, vj, perm = prob._kept.vi, prob._kept.vj, prob._kept.perm
     vj_res = np.empty_like(vj)
     vj_res[perm] = vj
     n_views = len(prob.R)
