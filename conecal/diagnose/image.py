@@ -111,6 +111,8 @@ class ImageModel:
         self.stated_blur = None if spec is None or spec.blur_px is None else float(spec.blur_px)
         self.patches: list[Patch] = []
         self.skipped: dict[str, int] = {}
+        self._crops: dict = {}      # box -> (cropped detector, its warp)
+        self._start_gradients: dict = {}   # (frame, id) -> (lab centre, own_gradient there)
         self._build(max_frames, progress)
         if not self.patches:
             raise ValueError("no marker patch is usable at the image level")
@@ -139,10 +141,16 @@ class ImageModel:
         return self._moved(X, xy - pred)
 
     def _render_patch(self, box, X, r) -> np.ndarray:
-        g = self.g
-        r0, r1, c0, c1 = box
-        crop = g.replace(detector_origin=g.detector_point(c0, r0), shape=(r1 - r0, c1 - c0))
-        warp = None if self.imaging is None else _CropWarp(self.imaging, g.shape, np.array([c0, r0], float))
+        # a patch is rendered some 50 times (re-centring, neighbours, derivatives):
+        # its cropped detector is made once
+        crops = self._crops
+        if box not in crops:
+            g = self.g
+            r0, r1, c0, c1 = box
+            crop = g.replace(detector_origin=g.detector_point(c0, r0), shape=(r1 - r0, c1 - c0))
+            warp = None if self.imaging is None else _CropWarp(self.imaging, g.shape, np.array([c0, r0], float))
+            crops[box] = (crop, warp)
+        crop, warp = crops[box]
         return render_line_integrals(crop, [Sphere(X, r, 1.0)], ss=3, distortion=warp)
 
     def _render(self, X, radii):
@@ -286,6 +294,12 @@ class ImageModel:
         chord image, by re-rendering its sphere moved ±h px (the chord is
         pixel-averaged over 3x3 rays: a finite difference of the image
         itself is 20 % off at 0.6 px blur)."""
+        # every candidate's fit starts from the same placement: the first
+        # position's derivatives are kept (exactly those; moved shadows re-render)
+        key = (p.frame, p.id)
+        kept = self._start_gradients.get(key)
+        if kept is not None and np.array_equal(kept[0], p.lab):
+            return kept[1]
         out = []
         for k in range(2):
             d = np.zeros((2, 2))
@@ -293,6 +307,8 @@ class ImageModel:
             X = self._moved(np.repeat(p.lab[None], 2, axis=0), d)
             plus, minus = (self._render_patch(p.box, X[i], p.sphere_radius) for i in range(2))
             out.append(-(plus - minus) / (2 * h))     # the sphere moved +h: the image moved by -h
+        if kept is None and h == 0.02:
+            self._start_gradients[key] = (p.lab.copy(), out)
         return out
 
     def set_weights(self, x) -> None:
