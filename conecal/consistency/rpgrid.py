@@ -380,9 +380,9 @@ class RPProblem:
             ns.append(normals[p, take])
             ks.append(take)
         self.vi = np.concatenate(vi)
+        self.vj = np.concatenate(vj)
         # the plane's step along its pair's fan (for the smoothing along it)
         self.fan_index = np.concatenate(ks)
-        self.vj = np.concatenate(vj)
         self.normals = np.concatenate(ns)
         self.n_pairs = len(pairs)
         # lab-frame normals per view are fixed: only the detector moves

@@ -112,7 +112,7 @@ class ImageModel:
         self.patches: list[Patch] = []
         self.skipped: dict[str, int] = {}
         self._crops: dict = {}      # box -> (cropped detector, its warp)
-        self._start_gradients: dict = {}   # (frame, id) -> (lab centre, own_gradient there)
+        self._start_gradients: dict = {}   # (frame, id, h) -> (lab centre, own_gradient there)
         self._build(max_frames, progress)
         if not self.patches:
             raise ValueError("no marker patch is usable at the image level")
@@ -296,7 +296,7 @@ class ImageModel:
         itself is 20 % off at 0.6 px blur)."""
         # every candidate's fit starts from the same placement: the first
         # position's derivatives are kept (exactly those; moved shadows re-render)
-        key = (p.frame, p.id)
+        key = (p.frame, p.id, h)
         kept = self._start_gradients.get(key)
         if kept is not None and np.array_equal(kept[0], p.lab):
             return kept[1]
@@ -307,7 +307,7 @@ class ImageModel:
             X = self._moved(np.repeat(p.lab[None], 2, axis=0), d)
             plus, minus = (self._render_patch(p.box, X[i], p.sphere_radius) for i in range(2))
             out.append(-(plus - minus) / (2 * h))     # the sphere moved +h: the image moved by -h
-        if kept is None and h == 0.02:
+        if kept is None:
             self._start_gradients[key] = (p.lab.copy(), out)
         return out
 

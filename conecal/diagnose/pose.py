@@ -34,6 +34,7 @@ from ..effects.robot import JointOffset, RobotDeflection
 from ..errors import InputError
 from ..geometry import ConeGeometry, RigidTransform, rotvec_to_matrix
 from ..geometry.rotations import skew
+from .model import Observations
 
 def small_rotvec(R: np.ndarray) -> np.ndarray:
     """Rotation vectors (..., 3) rad of rotations (..., 3, 3) below 90 deg."""
@@ -227,14 +228,6 @@ def candidates(model: PoseModel) -> list:
     return out
 
 
-@dataclass
-class SceneObservations:
-    row: np.ndarray        # (m,) index into the scan's log rows
-    frame: np.ndarray      # (m,)
-    ids: np.ndarray        # (m,) holder sphere ids
-    xy: np.ndarray         # (m, 2) px, where the fitted pose projects each sphere
-
-
 class PoseScene:
     """A fit-pose result as the image level sees it: in every frame with an
     ok pose, every sphere of the holder placed by that pose (lab, mm) and
@@ -268,8 +261,10 @@ class PoseScene:
         if not ok:
             raise InputError(f"{path}: no frame with an ok pose")
         self.X = np.concatenate(X)
-        self.obs = SceneObservations(row=np.concatenate(rows), frame=np.concatenate(frames), ids=np.concatenate(sid),
-                                     xy=self.geometry.project(self.X))
+        # xy: where the fitted pose projects each sphere (no measurement, so no sigma)
+        self.obs = Observations(row=np.concatenate(rows), frame=np.concatenate(frames), ids=np.concatenate(sid),
+                                xy=self.geometry.project(self.X), sigma=np.full(len(self.X), np.nan),
+                                points=np.tile(P, (len(ok), 1)))
         d = float(scan.config.markers.diameter)
         self.doc = {"spheres": [{"id": int(i), "diameter": d} for i in ids]}
 
