@@ -81,6 +81,51 @@ def test_joseph_radon_of_a_constant_image():
     assert np.isclose(out[0].sum() * 0.4, 100 * 120 * 0.16, rtol=0.02)
 
 
+def _joseph_reference(img, pu, pv, c_ref, r_ref, alpha, s):
+    """One line's Joseph sum, walked along the line (numpy, slow and plain)."""
+    ca, sa = np.cos(alpha), np.sin(alpha)
+    rows, cols = img.shape
+    if abs(ca) >= abs(sa):          # one sample per row, linear across columns
+        r = np.arange(rows)
+        c = (s - (r - r_ref) * pv * sa) / (ca * pu) + c_ref
+        line, n, step = img, cols, pv / abs(ca)
+    else:                           # one sample per column, linear across rows
+        r = np.arange(cols)
+        c = (s - (r - c_ref) * pu * ca) / (sa * pv) + r_ref
+        line, n, step = img.T, rows, pu / abs(sa)
+    ok = (c >= 0) & (c <= n - 1)
+    i = np.minimum(c[ok].astype(int), n - 2)
+    f = c[ok] - i
+    j = r[ok]
+    return step * np.sum(line[j, i] * (1 - f) + line[j, i + 1] * f)
+
+
+def test_row_ordered_joseph_radon_matches_the_line_by_line_sums():
+    rng = np.random.default_rng(11)
+    img = rng.random((37, 45)).astype(np.float32)
+    ang = np.array([0.0, 0.2, np.pi / 4, 1.0, np.pi / 2, 2.0, 3.0])
+    s0, ds, n_s = -14.0, 0.37, 77
+    out = kernels.radon_joseph(img, 0.4, 0.5, 21.3, 17.8, np.cos(ang), np.sin(ang), s0, ds, n_s)
+    ref = np.array([[_joseph_reference(img, 0.4, 0.5, 21.3, 17.8, a, s0 + k * ds) for k in range(n_s)] for a in ang])
+    assert np.allclose(out, ref, rtol=1e-5, atol=1e-4)
+
+
+def test_fourth_order_derivative_kernel_differentiates_a_cubic_exactly():
+    from conecal.consistency.radon import derivative_kernel
+
+    x = np.arange(-40, 41, dtype=float)
+    f = 0.3 * x**3 - 2 * x**2 + x
+    exact = 0.9 * x**2 - 4 * x + 1
+    for order, exact_ok in ((2, False), (4, True)):
+        taps = derivative_kernel(3.0, order)
+        half = len(taps) // 2
+        got = np.array([np.dot(taps, f[k - half:k + half + 1]) for k in range(half, len(x) - half)])
+        assert np.allclose(got, exact[half:len(x) - half], atol=1e-6) == exact_ok
+        assert np.isclose(np.dot(taps, np.arange(-half, half + 1)), 1.0)       # a line, exactly
+    with pytest.raises(ValueError):
+        derivative_kernel(3.0, 3)
+
+
 def test_squared_joseph_sums_give_the_variance_of_each_line_sum():
     """radon_joseph(var, squared=True) against the spread of the Radon
     transforms of many noise images with that pixel variance."""

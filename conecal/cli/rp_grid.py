@@ -51,8 +51,15 @@ def _crop(text):
 @click.option("--crop", default=None, metavar="COL0,COL1,ROW0,ROW1",
               help="Use only this detector region (inclusive pixel indices). Not needed for holders or truncation.")
 @click.option("--keep-truncated", is_flag=True, help="Do not drop planes whose lines leave the detector where the object is.")
+@click.option("--smooth-px", type=click.FloatRange(0.5, 20.0), default=3.0, show_default=True,
+              help="Gaussian sigma (px) of each table's derivative along s.")
+@click.option("--kernel-order", type=click.Choice(["2", "4"]), default="2", show_default=True,
+              help="4: a derivative kernel that is also exact on cubics (less smoothing bias, 1.85x the noise).")
+@click.option("--fan-sigma-deg", type=click.FloatRange(0.0, 10.0), default=0.0, show_default=True,
+              help="Smoothing along each pair's fan of planes (deg; 0: off). Use with --planes-per-pair 144.")
 @click.option("--seed", type=int, default=0, show_default=True, help="Seed of the plane sample.")
-def command(scan, output, ranges, pairs, planes_per_pair, angles, crop, keep_truncated, seed):
+def command(scan, output, ranges, pairs, planes_per_pair, angles, crop, keep_truncated, smooth_px, kernel_order,
+            fan_sigma_deg, seed):
     """Find the detector misalignment of circular SCAN from redundant plane integrals.
 
     No markers: every plane through two source positions is measured by
@@ -68,7 +75,8 @@ def command(scan, output, ranges, pairs, planes_per_pair, angles, crop, keep_tru
       conecal rp-grid scans/ct --range shift_u_px=40 --range eta_deg=5 -o rp.json
     """
     opt = RPOptions(ranges=_ranges(ranges), pairs=pairs, planes_per_pair=planes_per_pair, n_angles=angles,
-                    crop=_crop(crop), exclude_truncated=not keep_truncated, seed=seed)
+                    crop=_crop(crop), exclude_truncated=not keep_truncated, smooth_px=smooth_px,
+                    kernel_order=int(kernel_order), fan_sigma_deg=fan_sigma_deg, seed=seed)
     s = load_scan(scan)
     with progress_bar("rp-grid") as prog:
         res, prob = run(s, opt, progress=prog)

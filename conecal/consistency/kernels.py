@@ -36,50 +36,64 @@ def radon_joseph(img, pu, pv, c_ref, r_ref, cos_a, sin_a, s0, ds, n_s, squared=F
     """
     n_a = cos_a.shape[0]
     out = np.zeros((n_a, n_s), np.float32)
-    img_t = img.T
+    # flat lines walk columns: a contiguous transposed copy keeps them row walks
+    img_t = np.ascontiguousarray(img.T)
     for a in prange(n_a):
         ca = cos_a[a]
         sa = sin_a[a]
+        acc = np.zeros(n_s)
+        if abs(ca) >= abs(sa):     # steep line: one sample per row
+            _angle_sums(img, s0, ds, sa, ca, pv, pu, r_ref, c_ref, squared, acc)
+            step = pv / abs(ca)
+        else:                      # flat line: one sample per column
+            _angle_sums(img_t, s0, ds, ca, sa, pu, pv, c_ref, r_ref, squared, acc)
+            step = pu / abs(sa)
+        w = step * step if squared else step
         for k in range(n_s):
-            s = s0 + k * ds
-            if abs(ca) >= abs(sa):     # steep line: one sample per row
-                out[a, k] = _line_sum(img, s, sa, ca, pv, pu, r_ref, c_ref, squared)
-            else:                      # flat line: one sample per column (the transposed case)
-                out[a, k] = _line_sum(img_t, s, ca, sa, pu, pv, c_ref, r_ref, squared)
+            out[a, k] = acc[k] * w
     return out
 
 
 @njit(cache=True)
-def _line_sum(img, s, a_major, a_minor, p_major, p_minor, ref_major, ref_minor, squared):
-    """Integral along ``a_minor * x_minor + a_major * x_major = s`` of
-    ``img[major, minor]`` (mm from (ref_major, ref_minor), pitches p_*), one
-    sample per major index, linear across the minor one; |a_minor| >= |a_major|.
-    ``squared``: weights squared (see :func:`radon_joseph`)."""
+def _angle_sums(img, s0, ds, a_major, a_minor, p_major, p_minor, ref_major, ref_minor, squared, acc):
+    """Adds to ``acc[k]`` the samples of ``img[major, minor]`` on the lines
+    ``a_minor * x_minor + a_major * x_major = s0 + k ds`` (mm from
+    (ref_major, ref_minor), pitches p_*), one per major index, linear across
+    the minor one; |a_minor| >= |a_major|.
+
+    Row by row rather than line by line: along one image row the lines of
+    successive k fall a fixed step apart, so the row is read in order
+    (1.26 times faster than walking each line across the rows, same sums:
+    benchmarks/bench_radon.py).
+    """
     n_major, n_minor = img.shape
-    m_at0 = (s + ref_major * p_major * a_major) / (a_minor * p_minor) + ref_minor
+    n_s = acc.shape[0]
+    first = (s0 + ref_major * p_major * a_major) / (a_minor * p_minor) + ref_minor
+    step = ds / (a_minor * p_minor)
     dm = -p_major * a_major / (a_minor * p_minor)
-    lo, hi = 0, n_major - 1
-    if dm > 1e-12:
-        lo = max(lo, int(np.ceil((0.0 - m_at0) / dm)))
-        hi = min(hi, int(np.floor((n_minor - 1 - m_at0) / dm)))
-    elif dm < -1e-12:
-        lo = max(lo, int(np.ceil((n_minor - 1 - m_at0) / dm)))
-        hi = min(hi, int(np.floor((0.0 - m_at0) / dm)))
-    elif m_at0 < 0 or m_at0 > n_minor - 1:
-        return 0.0
-    acc = 0.0
-    for j in range(lo, hi + 1):
-        m = m_at0 + dm * j
-        i = int(m)
-        if i >= n_minor - 1:
-            i = n_minor - 2
-        f = m - i
-        if squared:
-            acc += img[j, i] * (1.0 - f) * (1.0 - f) + img[j, i + 1] * f * f
+    top = n_minor - 1.0
+    for j in range(n_major):
+        base = first + dm * j
+        if step > 0:
+            klo = int(np.ceil((0.0 - base) / step))
+            khi = int(np.floor((top - base) / step))
         else:
-            acc += img[j, i] * (1.0 - f) + img[j, i + 1] * f
-    step = p_major / abs(a_minor)
-    return acc * step * step if squared else acc * step
+            klo = int(np.ceil((top - base) / step))
+            khi = int(np.floor((0.0 - base) / step))
+        klo = max(klo, 0)
+        khi = min(khi, n_s - 1)
+        row = img[j]
+        if squared:
+            for k in range(klo, khi + 1):
+                m = base + step * k
+                i = min(max(int(m), 0), n_minor - 2)
+                f = m - i
+                acc[k] += row[i] * (1.0 - f) * (1.0 - f) + row[i + 1] * f * f
+        else:
+            for k in range(klo, khi + 1):
+                m = base + step * k
+                i = min(max(int(m), 0), n_minor - 2)
+                acc[k] += row[i] + (row[i + 1] - row[i]) * (m - i)
 
 
 @njit(cache=True, inline="always")

@@ -26,19 +26,33 @@ def cosine_weighted(projection: np.ndarray, pixel_pitch, principal_point, sdd: f
                                  float(principal_point[0]), float(principal_point[1]), 0.0, 0.0, float(sdd))
 
 
-def derivative_kernel(sigma_bins: float) -> np.ndarray:
+def derivative_kernel(sigma_bins: float, order: int = 2) -> np.ndarray:
     """Derivative-of-Gaussian taps normalised to differentiate a straight
-    line exactly (scipy's sampled kernel under-reads narrow ones by ~14 %)."""
+    line exactly (scipy's sampled kernel under-reads narrow ones by ~14 %).
+
+    ``order`` 4: taps ``x w (a + b x^2)`` that also differentiate a cubic
+    exactly, so the smoothing's error starts at sigma^4 instead of sigma^2
+    (the derivative of a Gaussian reads f' plus sigma^2/2 times the third
+    derivative); at the same sigma its noise is 1.85 times the plain kernel's.
+    """
+    if order not in (2, 4):
+        raise ValueError(f"derivative kernel order {order}: 2 or 4")
     sigma = max(float(sigma_bins), 0.5)
-    x = np.arange(-int(np.ceil(4 * sigma)), int(np.ceil(4 * sigma)) + 1, dtype=float)
+    half = int(np.ceil((4 if order == 2 else 5) * sigma))
+    x = np.arange(-half, half + 1, dtype=float)
     w = np.exp(-x**2 / (2 * sigma**2))
     # correlate1d: out[i] = sum_k taps[k] in[i + k]; d/ds needs taps ~ +x
-    return x * w / np.sum(x**2 * w)
+    if order == 2:
+        return x * w / np.sum(x**2 * w)
+    m2, m4, m6 = (np.sum(x**k * w) for k in (2, 4, 6))
+    a, b = np.linalg.solve([[m2, m4], [m4, m6]], [1.0, 0.0])
+    return x * w * (a + b * x**2)
 
 
-def s_derivative(radon: np.ndarray, ds: float, sigma_bins: float) -> np.ndarray:
-    """d/ds of Radon rows sampled every ``ds`` mm, smoothed by a Gaussian of ``sigma_bins``."""
-    return correlate1d(radon, derivative_kernel(sigma_bins), axis=-1, mode="constant") / ds
+def s_derivative(radon: np.ndarray, ds: float, sigma_bins: float, order: int = 2) -> np.ndarray:
+    """d/ds of Radon rows sampled every ``ds`` mm, smoothed by a Gaussian of
+    ``sigma_bins`` (``order``: see :func:`derivative_kernel`)."""
+    return correlate1d(radon, derivative_kernel(sigma_bins, order), axis=-1, mode="constant") / ds
 
 
 def radon_derivative_table(image: np.ndarray, pixel_pitch: float, principal_point, n_angles: int = 180,

@@ -61,6 +61,7 @@ DEFAULT_RANGES = {"shift_u_px": 20.0, "shift_v_px": 20.0, "eta_deg": 3.0, "theta
 class RPOptions:
     n_angles: int = 360                 # table angles over [0, pi)
     smooth_px: float = 3.0              # Gaussian sigma of the s-derivative (px): less noise bias
+    kernel_order: int = 2               # 4: the s-derivative's kernel also differentiates cubics exactly
     pairs: int = 1500                   # random view pairs
     planes_per_pair: int = 48           # at most, evenly over the fan; its full step is FAN_STEP_DEG
     # Gaussian sigma (deg of the planes' angle about the pair's baseline) of a
@@ -130,7 +131,7 @@ class ViewTables:
         return int(self.tables.nbytes + self.edge_flags.nbytes + (0 if self.variance is None else self.variance.nbytes))
 
 
-def _view_table(img, g_weights: ConeGeometry, ref, rect, angles, s0, ds, n_s, smooth_px):
+def _view_table(img, g_weights: ConeGeometry, ref, rect, angles, s0, ds, n_s, smooth_px, order=2):
     c0, c1, r0, r1 = rect
     sub = np.ascontiguousarray(img[r0:r1 + 1, c0:c1 + 1], dtype=np.float32)
     pu, pv = g_weights.pixel_pitch
@@ -139,13 +140,13 @@ def _view_table(img, g_weights: ConeGeometry, ref, rect, angles, s0, ds, n_s, sm
     cr, rr = ref[0] - c0, ref[1] - r0
     weighted = kernels.cosine_weight(sub, pu, pv, cr, rr, (pp[0] - ref[0]) * pu, (pp[1] - ref[1]) * pv, D)
     radon = kernels.radon_joseph(weighted, pu, pv, cr, rr, np.cos(angles), np.sin(angles), s0, ds, n_s)
-    return s_derivative(radon, ds, smooth_px * min(pu, pv) / ds)
+    return s_derivative(radon, ds, smooth_px * min(pu, pv) / ds, order)
 
 
 NOISE_ANGLE_STEP, NOISE_S_STEP = 4, 2
 
 
-def _view_variance(img, g_weights: ConeGeometry, ref, rect, angles, s0, ds, n_s, smooth_px):
+def _view_variance(img, g_weights: ConeGeometry, ref, rect, angles, s0, ds, n_s, smooth_px, order=2):
     """Noise variance of one view's table, up to a global factor.
 
     Quantum-limited: a pixel's line integral p = -ln(I/I0) has variance
@@ -166,7 +167,7 @@ def _view_variance(img, g_weights: ConeGeometry, ref, rect, angles, s0, ds, n_s,
     var = kernels.cosine_weight(kernels.cosine_weight(var, *args), *args)
     a = angles[::NOISE_ANGLE_STEP]
     radon = kernels.radon_joseph(var, pu, pv, cr, rr, np.cos(a), np.sin(a), s0, ds, n_s, True)
-    taps = derivative_kernel(smooth_px * min(pu, pv) / ds)
+    taps = derivative_kernel(smooth_px * min(pu, pv) / ds, order)
     out = correlate1d(radon, taps**2, axis=-1, mode="constant") / ds**2
     return out[:, ::NOISE_S_STEP]
 
@@ -258,9 +259,10 @@ def build_tables(images, n_views: int, g_weights: ConeGeometry, opt: RPOptions, 
         n_av = len(angles[::NOISE_ANGLE_STEP])
         variance = np.empty((n_views, n_av, len(range(0, n_s, NOISE_S_STEP))), np.float32)
     for k, img in enumerate(images):
-        tables[k] = _view_table(img, g_weights, ref, rect, angles, s0, ds, n_s, opt.smooth_px)
+        tables[k] = _view_table(img, g_weights, ref, rect, angles, s0, ds, n_s, opt.smooth_px, opt.kernel_order)
         if noise:
-            variance[k] = _view_variance(img, g_weights, ref, rect, angles, s0, ds, n_s, opt.smooth_px)
+            variance[k] = _view_variance(img, g_weights, ref, rect, angles, s0, ds, n_s, opt.smooth_px,
+                                             opt.kernel_order)
         flags[k] = _edge_flags(img, rect, opt.truncation_level)
         if opt.exclude_holder:
             hull = _holder_hull(img, rect, opt.holder_ratio)
@@ -405,7 +407,8 @@ class RPProblem:
         # the derivative along s mixes lines up to 4 sigma away: they must be whole too
         # and as the search moves the geometry, lines move by a few pixels
         motion = self.opt.motion_margin_px if motion_px is None else motion_px
-        margin = (4 * self.opt.smooth_px + 1 + motion) * self.tab.ds
+        reach = 4 if self.opt.kernel_order == 2 else 5
+        margin = (reach * self.opt.smooth_px + 1 + motion) * self.tab.ds
         holder = np.zeros(len(self.vi), bool)
         for views, m in ((self.vi, self.mi), (self.vj, self.mj)):
             *_, alpha, s = self._lines(f, m)
@@ -1158,6 +1161,7 @@ def document(res: RPResult, prob: RPProblem, scan, opt: RPOptions) -> dict:
                        "min_separation_deg": opt.min_separation_deg},
             "tables": {"views": int(prob.tab.tables.shape[0]), "angles": opt.n_angles,
                        "offsets": int(prob.tab.tables.shape[2]), "ds_mm": prob.tab.ds, "smooth_px": opt.smooth_px,
+                       "kernel_order": opt.kernel_order, "fan_sigma_deg": opt.fan_sigma_deg,
                        "region": list(prob.tab.rect), "megabytes": prob.tab.nbytes / 1e6},
             "ranges": dict(opt.ranges), "grid_steps": dict(opt.grid_steps),
             "evaluations": res.evaluations,
