@@ -291,3 +291,11 @@ def test_cli_refuses_bad_input(small_circular, small_linear_scan, tmp_path):
     r = run(cli, ["rp-grid", str(small_circular), "-o", str(tmp_path / "x.json"), "--crop", "50,10,0,95"])
     assert r.exit_code == 2 and "crop" in r.output
     assert not (tmp_path / "x.json").exists()
+
+
+def test_tables_refuse_an_unknown_kernel_order():
+    from conecal.errors import InputError
+
+    g = ConeGeometry.nominal(sod=100.0, sdd=200.0, shape=(20, 24), pixel_pitch=(0.5, 0.5))
+    with pytest.raises(InputError, match="kernel_order"):
+        rpgrid.build_tables(iter([np.zeros((20, 24), np.float32)]), 1, g, rpgrid.RPOptions(kernel_order=3))

@@ -236,6 +236,8 @@ def build_tables(images, n_views: int, g_weights: ConeGeometry, opt: RPOptions, 
                  noise: bool = False) -> ViewTables:
     """Tables for ``n_views`` frames yielded one at a time by ``images``
     (and their noise variance, with ``noise``)."""
+    if opt.kernel_order not in (2, 4):
+        raise InputError(f"rp-grid: kernel_order must be 2 or 4, not {opt.kernel_order!r}")
     rows, cols = g_weights.shape
     rect = tuple(int(x) for x in opt.crop) if opt.crop is not None else (0, cols - 1, 0, rows - 1)
     c0, c1, r0, r1 = rect
