@@ -16,6 +16,8 @@ degrees of the planes' angle about the baseline).
 
     python benchmarks/rpgrid_fan_smoothing.py            # seed 116, ~4 min on 2 cores
     python benchmarks/rpgrid_fan_smoothing.py --seed 108 --photons 1e5
+    python benchmarks/rpgrid_fan_smoothing.py --kernel-orders   # 3-4 px tables, kernel order 2 and 4
+    python benchmarks/rpgrid_fan_smoothing.py --kernel-orders --kind axial --seed 102
 """
 
 from __future__ import annotations
@@ -34,16 +36,21 @@ from conecal.scan import load_scan
 from conecal.simulate import write_scan
 from conecal.simulate.scenarios import circular_scan
 
-# (table smoothing px, planes per pair, sigma along the fan in deg)
-SETTINGS = [(3.0, 48, 0.0), (1.0, 48, 0.0), (1.0, 144, 0.5), (1.0, 144, 0.75), (0.7, 144, 0.6)]
+# (table smoothing px, planes per pair, sigma along the fan in deg, derivative kernel order)
+SETTINGS = [(3.0, 48, 0.0, 2), (1.0, 48, 0.0, 2), (1.0, 144, 0.5, 2), (1.0, 144, 0.75, 2), (0.7, 144, 0.6, 2)]
+ORDER_SETTINGS = [(3.0, 48, 0.0, 2), (3.0, 48, 0.0, 4), (2.0, 48, 0.0, 4), (3.0, 144, 0.75, 4), (4.0, 48, 0.0, 4)]
 
 
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--seed", type=int, default=116)
     ap.add_argument("--photons", type=float, default=0.0, help="0: noiseless")
+    ap.add_argument("--kind", choices=["plain", "axial", "transaxial"], default="plain",
+                    help="truncation of the simulated scan")
+    ap.add_argument("--kernel-orders", action="store_true",
+                    help="compare the derivative kernels of order 2 and 4 instead of the table widths")
     args = ap.parse_args(argv)
-    sc = circular_scan(args.seed, random_misalignment=True)
+    sc = circular_scan(args.seed, random_misalignment=True, truncation=None if args.kind == "plain" else args.kind)
     sc.photons = args.photons
     truth = np.array([sc.truth_extra["misalignment"][n] for n in NAMES])
     with tempfile.TemporaryDirectory() as tmp:
@@ -51,18 +58,19 @@ def main(argv=None):
         axis = rpgrid.check_scan(scan)
         nominal, transforms = scan.nominal_geometry(), scan.nominal_transforms()
         images = [scan.stack.read(int(k)) for k in scan.log.frame]
-    print(f"plain scan {args.seed}, photons {args.photons:g}; truth " +
+    print(f"{args.kind} scan {args.seed}, photons {args.photons:g}; truth " +
           "  ".join(f"{n}={v:+.3f}" for n, v in zip(NAMES, truth)))
-    for smooth, per_pair, sigma in SETTINGS:
+    for smooth, per_pair, sigma, order in ORDER_SETTINGS if args.kernel_orders else SETTINGS:
         t = time.perf_counter()
-        opt = rpgrid.RPOptions(smooth_px=smooth, planes_per_pair=per_pair, fan_sigma_deg=sigma, noise_weights=False)
+        opt = rpgrid.RPOptions(smooth_px=smooth, kernel_order=order, planes_per_pair=per_pair, fan_sigma_deg=sigma,
+                               noise_weights=False)
         tab = rpgrid.build_tables(iter(images), len(images), misaligned(nominal, truth), opt)
         prob = rpgrid.RPProblem(nominal, transforms, tab, axis, opt)
         prob.select(truth)
         fit = least_squares(prob.residuals, truth, jac=prob.jacobian, x_scale=np.array([1, 1, 0.1, 0.5, 0.5]),
                             max_nfev=40)
         err = fit.x - truth
-        print(f"tables {smooth:.1f} px, {per_pair:3d} planes/pair, along the fan sigma {sigma:.2f} deg "
+        print(f"tables {smooth:.1f} px order {order}, {per_pair:3d} planes/pair, along the fan sigma {sigma:.2f} deg "
               f"({int(prob.keep.sum())} planes): error " + "  ".join(f"{n}={e:+.3f}" for n, e in zip(NAMES, err)) +
               f"   ({time.perf_counter() - t:.0f} s)", flush=True)
 

@@ -26,6 +26,11 @@ def cosine_weighted(projection: np.ndarray, pixel_pitch, principal_point, sdd: f
                                  float(principal_point[0]), float(principal_point[1]), 0.0, 0.0, float(sdd))
 
 
+# half-width of the derivative kernel in sigmas, by order (the fourth-order
+# taps' side lobes reach further)
+KERNEL_REACH = {2: 4, 4: 5}
+
+
 def derivative_kernel(sigma_bins: float, order: int = 2) -> np.ndarray:
     """Derivative-of-Gaussian taps normalised to differentiate a straight
     line exactly (scipy's sampled kernel under-reads narrow ones by ~14 %).
@@ -35,10 +40,10 @@ def derivative_kernel(sigma_bins: float, order: int = 2) -> np.ndarray:
     (the derivative of a Gaussian reads f' plus sigma^2/2 times the third
     derivative); at the same sigma its noise is 1.85 times the plain kernel's.
     """
-    if order not in (2, 4):
+    if order not in KERNEL_REACH:
         raise ValueError(f"derivative kernel order {order}: 2 or 4")
     sigma = max(float(sigma_bins), 0.5)
-    half = int(np.ceil((4 if order == 2 else 5) * sigma))
+    half = int(np.ceil(KERNEL_REACH[order] * sigma))
     x = np.arange(-half, half + 1, dtype=float)
     w = np.exp(-x**2 / (2 * sigma**2))
     # correlate1d: out[i] = sum_k taps[k] in[i + k]; d/ds needs taps ~ +x

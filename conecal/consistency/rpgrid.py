@@ -50,7 +50,7 @@ from ..errors import FitError, InputError
 from ..geometry import ConeGeometry
 from . import kernels
 from .misalignment import NAMES, UNITS, misaligned
-from .radon import derivative_kernel, s_derivative
+from .radon import KERNEL_REACH, derivative_kernel, s_derivative
 
 FAN_STEP_DEG = 0.5     # the planes of a pair's fan: one every half degree about the baseline
 
@@ -236,7 +236,7 @@ def build_tables(images, n_views: int, g_weights: ConeGeometry, opt: RPOptions, 
                  noise: bool = False) -> ViewTables:
     """Tables for ``n_views`` frames yielded one at a time by ``images``
     (and their noise variance, with ``noise``)."""
-    if opt.kernel_order not in (2, 4):
+    if opt.kernel_order not in KERNEL_REACH:
         raise InputError(f"rp-grid: kernel_order must be 2 or 4, not {opt.kernel_order!r}")
     rows, cols = g_weights.shape
     rect = tuple(int(x) for x in opt.crop) if opt.crop is not None else (0, cols - 1, 0, rows - 1)
@@ -406,11 +406,10 @@ class RPProblem:
         f = _frame(misaligned(self.nominal, p), self.tab.ref)
         keep = np.ones(len(self.vi), bool)
         truncated = np.zeros(len(self.vi), bool)
-        # the derivative along s mixes lines up to 4 sigma away: they must be whole too
+        # the derivative along s mixes lines up to 4-5 sigma away: they must be whole too
         # and as the search moves the geometry, lines move by a few pixels
         motion = self.opt.motion_margin_px if motion_px is None else motion_px
-        reach = 4 if self.opt.kernel_order == 2 else 5
-        margin = (reach * self.opt.smooth_px + 1 + motion) * self.tab.ds
+        margin = (KERNEL_REACH[self.opt.kernel_order] * self.opt.smooth_px + 1 + motion) * self.tab.ds
         holder = np.zeros(len(self.vi), bool)
         for views, m in ((self.vi, self.mi), (self.vj, self.mj)):
             *_, alpha, s = self._lines(f, m)
