@@ -293,9 +293,13 @@ def test_cli_refuses_bad_input(small_circular, small_linear_scan, tmp_path):
     assert not (tmp_path / "x.json").exists()
 
 
-def test_tables_refuse_an_unknown_kernel_order():
+def test_tables_refuse_an_unknown_kernel_order_offset_step_or_interpolation():
     from conecal.errors import InputError
 
     g = ConeGeometry.nominal(sod=100.0, sdd=200.0, shape=(20, 24), pixel_pitch=(0.5, 0.5))
     with pytest.raises(InputError, match="kernel_order"):
         rpgrid.build_tables(iter([np.zeros((20, 24), np.float32)]), 1, g, rpgrid.RPOptions(kernel_order=3))
+    with pytest.raises(InputError, match="offset_step_px"):
+        rpgrid.build_tables(iter([np.zeros((20, 24), np.float32)]), 1, g, rpgrid.RPOptions(offset_step_px=0.0))
+    with pytest.raises(InputError, match="interpolation"):
+        rpgrid.build_tables(iter([np.zeros((20, 24), np.float32)]), 1, g, rpgrid.RPOptions(interpolation="quintic"))

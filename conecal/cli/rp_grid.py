@@ -57,9 +57,11 @@ def _crop(text):
               help="4: a derivative kernel that is also exact on cubics (less smoothing bias, 1.85x the noise).")
 @click.option("--fan-sigma-deg", type=click.FloatRange(0.0, 10.0), default=0.0, show_default=True,
               help="Smoothing along each pair's fan of planes (deg; 0: off). Use with --planes-per-pair 144.")
+@click.option("--interpolation", type=click.Choice(["spline", "cubic", "linear"]), default="spline", show_default=True,
+              help="Table look-ups of the refinements: cubic B-spline along the offset (spline) or Catmull-Rom (cubic).")
 @click.option("--seed", type=int, default=0, show_default=True, help="Seed of the plane sample.")
 def command(scan, output, ranges, pairs, planes_per_pair, angles, crop, keep_truncated, smooth_px, kernel_order,
-            fan_sigma_deg, seed):
+            fan_sigma_deg, interpolation, seed):
     """Find the detector misalignment of circular SCAN from redundant plane integrals.
 
     No markers: every plane through two source positions is measured by
@@ -76,7 +78,8 @@ def command(scan, output, ranges, pairs, planes_per_pair, angles, crop, keep_tru
     """
     opt = RPOptions(ranges=_ranges(ranges), pairs=pairs, planes_per_pair=planes_per_pair, n_angles=angles,
                     crop=_crop(crop), exclude_truncated=not keep_truncated, smooth_px=smooth_px,
-                    kernel_order=int(kernel_order), fan_sigma_deg=fan_sigma_deg, seed=seed)
+                    kernel_order=int(kernel_order), fan_sigma_deg=fan_sigma_deg,
+                    interpolation=interpolation, seed=seed)
     s = load_scan(scan)
     with progress_bar("rp-grid") as prog:
         res, prob = run(s, opt, progress=prog)

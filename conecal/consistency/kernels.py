@@ -96,6 +96,79 @@ def _angle_sums(img, s0, ds, a_major, a_minor, p_major, p_minor, ref_major, ref_
                 acc[k] += row[i] + (row[i + 1] - row[i]) * (m - i)
 
 
+@njit(cache=True, parallel=True)
+def radon_joseph_variance(var, pu, pv, c_ref, r_ref, cos_a, sin_a, s0, ds, n_s):
+    """Noise variance of :func:`radon_joseph`'s sums and covariance of each
+    sum with the next offset's, for an image of independent pixel variances
+    ``var``. Returns (V, C), each (n_a, n_s) in image units * mm^2:
+    ``V[a, k] = Var(R[a, k])``, ``C[a, k] = Cov(R[a, k], R[a, k + 1])``.
+
+    Neighbouring offsets (1 to 1.41 px apart along a row) share a pixel
+    whenever both interpolate it: at 0 and 90 deg, where every row's phase
+    is the same, the covariance is half the variance. A derivative taken
+    across offsets needs it, or its variance is wrong by an angle-dependent
+    factor. Offsets two apart never share a pixel.
+    """
+    n_a = cos_a.shape[0]
+    V = np.zeros((n_a, n_s), np.float32)
+    C = np.zeros((n_a, n_s), np.float32)
+    var_t = np.ascontiguousarray(var.T)
+    for a in prange(n_a):
+        ca = cos_a[a]
+        sa = sin_a[a]
+        acc_v = np.zeros(n_s)
+        acc_c = np.zeros(n_s)
+        if abs(ca) >= abs(sa):
+            _angle_variance(var, s0, ds, sa, ca, pv, pu, r_ref, c_ref, acc_v, acc_c)
+            step = pv / abs(ca)
+        else:
+            _angle_variance(var_t, s0, ds, ca, sa, pu, pv, c_ref, r_ref, acc_v, acc_c)
+            step = pu / abs(sa)
+        for k in range(n_s):
+            V[a, k] = acc_v[k] * step * step
+            C[a, k] = acc_c[k] * step * step
+    return V, C
+
+
+@njit(cache=True)
+def _angle_variance(img, s0, ds, a_major, a_minor, p_major, p_minor, ref_major, ref_minor, acc_v, acc_c):
+    """As :func:`_angle_sums` with squared weights into ``acc_v`` and the
+    products of the weights of offsets k and k + 1 on shared pixels into ``acc_c``."""
+    n_major, n_minor = img.shape
+    n_s = acc_v.shape[0]
+    first = (s0 + ref_major * p_major * a_major) / (a_minor * p_minor) + ref_minor
+    step = ds / (a_minor * p_minor)
+    dm = -p_major * a_major / (a_minor * p_minor)
+    top = n_minor - 1.0
+    for j in range(n_major):
+        base = first + dm * j
+        if step > 0:
+            klo = int(np.ceil((0.0 - base) / step))
+            khi = int(np.floor((top - base) / step))
+        else:
+            klo = int(np.ceil((top - base) / step))
+            khi = int(np.floor((0.0 - base) / step))
+        klo = max(klo, 0)
+        khi = min(khi, n_s - 1)
+        row = img[j]
+        for k in range(klo, khi + 1):
+            m = base + step * k
+            i = min(max(int(m), 0), n_minor - 2)
+            f = m - i
+            acc_v[k] += row[i] * (1.0 - f) * (1.0 - f) + row[i + 1] * f * f
+            if k < khi:
+                m2 = m + step
+                i2 = min(max(int(m2), 0), n_minor - 2)
+                f2 = m2 - i2
+                # weights of line k: (1-f) at i, f at i+1; of line k+1: (1-f2) at i2, f2 at i2+1
+                if i2 == i:
+                    acc_c[k] += row[i] * (1.0 - f) * (1.0 - f2) + row[i + 1] * f * f2
+                elif i2 == i + 1:
+                    acc_c[k] += row[i + 1] * f * (1.0 - f2)
+                elif i2 == i - 1:
+                    acc_c[k] += row[i] * (1.0 - f) * f2
+
+
 @njit(cache=True, inline="always")
 def _half_turn(alpha, s, da):
     """Table row (index, fraction) of a line at ``alpha`` and its ``s`` and
@@ -180,8 +253,25 @@ def _keys(f):
     return w0, w1, w2, w3, d0, d1, d2, d3
 
 
+@njit(cache=True, inline="always")
+def _bspline(f):
+    """Cubic B-spline weights of the taps at -1, 0, 1, 2 and their d/df (on
+    prefiltered coefficients they interpolate; see :func:`spline_coefficients`)."""
+    g = 1.0 - f
+    f2 = f * f
+    w0 = g * g * g / 6.0
+    w1 = (3.0 * f2 * f - 6.0 * f2 + 4.0) / 6.0
+    w2 = (-3.0 * f2 * f + 3.0 * f2 + 3.0 * f + 1.0) / 6.0
+    w3 = f2 * f / 6.0
+    d0 = -0.5 * g * g
+    d1 = 1.5 * f2 - 2.0 * f
+    d2 = -1.5 * f2 + f + 0.5
+    d3 = 0.5 * f2
+    return w0, w1, w2, w3, d0, d1, d2, d3
+
+
 @njit(cache=True)
-def _row_cubic(tables, view, row, sk, s0, ds, n_a, n_s, flip):
+def _row_cubic(tables, view, row, sk, s0, ds, n_a, n_s, flip, spline=False):
     """Value and d/d(sk) of one table row at ``sk`` (Catmull-Rom along s);
     rows outside [0, n_a) wrap with T(alpha + pi, s) = flip * T(alpha, -s)."""
     wrapped = row < 0 or row >= n_a
@@ -193,7 +283,10 @@ def _row_cubic(tables, view, row, sk, s0, ds, n_a, n_s, flip):
     xs = (x - s0) / ds
     i = int(np.floor(xs))
     f = xs - i
-    w0, w1, w2, w3, d0, d1, d2, d3 = _keys(f)
+    if spline:
+        w0, w1, w2, w3, d0, d1, d2, d3 = _bspline(f)
+    else:
+        w0, w1, w2, w3, d0, d1, d2, d3 = _keys(f)
     val = 0.0
     der = 0.0
     for t, (w, d) in enumerate(((w0, d0), (w1, d1), (w2, d2), (w3, d3))):
@@ -208,7 +301,7 @@ def _row_cubic(tables, view, row, sk, s0, ds, n_a, n_s, flip):
 
 
 @njit(cache=True, parallel=True)
-def lookup_cubic(tables, view, alpha, s, s0, ds, flip=-1.0):
+def lookup_cubic(tables, view, alpha, s, s0, ds, flip=-1.0, spline=False):
     """As :func:`lookup`, with Catmull-Rom interpolation along both alpha and s.
 
     Bilinear look-ups make the cost piecewise quadratic: each plane's
@@ -233,11 +326,18 @@ def lookup_cubic(tables, view, alpha, s, s0, ds, flip=-1.0):
         # d/ds in the caller's s: the half turn flips s
         ds_sign = -sign if half < 0 else 1.0
         w0, w1, w2, w3, e0, e1, e2, e3 = _keys(fa)
-        v0, s0d = _row_cubic(tables, view[k], ia - 1, sk, s0, ds, n_a, n_s, flip)
-        v1, s1d = _row_cubic(tables, view[k], ia, sk, s0, ds, n_a, n_s, flip)
-        v2, s2d = _row_cubic(tables, view[k], ia + 1, sk, s0, ds, n_a, n_s, flip)
-        v3, s3d = _row_cubic(tables, view[k], ia + 2, sk, s0, ds, n_a, n_s, flip)
+        v0, s0d = _row_cubic(tables, view[k], ia - 1, sk, s0, ds, n_a, n_s, flip, spline)
+        v1, s1d = _row_cubic(tables, view[k], ia, sk, s0, ds, n_a, n_s, flip, spline)
+        v2, s2d = _row_cubic(tables, view[k], ia + 1, sk, s0, ds, n_a, n_s, flip, spline)
+        v3, s3d = _row_cubic(tables, view[k], ia + 2, sk, s0, ds, n_a, n_s, flip, spline)
         val[k] = sign * (w0 * v0 + w1 * v1 + w2 * v2 + w3 * v3)
         d_alpha[k] = sign * (e0 * v0 + e1 * v1 + e2 * v2 + e3 * v3) / da
         d_s[k] = ds_sign * (w0 * s0d + w1 * s1d + w2 * s2d + w3 * s3d)
     return val, d_alpha, d_s
+
+
+@njit(cache=True)
+def lookup_spline(tables, view, alpha, s, s0, ds):
+    """As :func:`lookup_cubic` for tables of cubic B-spline coefficients along
+    s (Catmull-Rom along alpha)."""
+    return lookup_cubic(tables, view, alpha, s, s0, ds, -1.0, True)

@@ -44,7 +44,7 @@ from dataclasses import dataclass, field
 from typing import NamedTuple
 
 import numpy as np
-from scipy.ndimage import correlate1d
+from scipy.ndimage import correlate1d, spline_filter1d
 
 from ..errors import FitError, InputError
 from ..geometry import ConeGeometry
@@ -60,6 +60,7 @@ DEFAULT_RANGES = {"shift_u_px": 20.0, "shift_v_px": 20.0, "eta_deg": 3.0, "theta
 @dataclass(frozen=True)
 class RPOptions:
     n_angles: int = 360                 # table angles over [0, pi)
+    offset_step_px: float = 1.0         # table offsets every this many pixels (0.5: twice the tables' time and size)
     smooth_px: float = 3.0              # Gaussian sigma of the s-derivative (px): less noise bias
     kernel_order: int = 2               # 4: the s-derivative's kernel also differentiates cubics exactly
     pairs: int = 1500                   # random view pairs
@@ -91,7 +92,7 @@ class RPOptions:
     valley_probes: tuple = ()
     # table look-ups of the refinements and sigmas; the grids, which only
     # need the basin, look up bilinearly (3x faster)
-    interpolation: str = "cubic"        # or "linear"
+    interpolation: str = "spline"       # or "cubic" (Catmull-Rom), "linear"
     # divide each plane's disagreement by its noise sigma at the lines (see
     # RPProblem.noise_weighted); needs the second pass's noise tables
     noise_weights: bool = True
@@ -151,9 +152,9 @@ def _view_variance(img, g_weights: ConeGeometry, ref, rect, angles, s0, ds, n_s,
 
     Quantum-limited: a pixel's line integral p = -ln(I/I0) has variance
     proportional to 1/I = exp(p). The cosine weights enter squared, the
-    Radon sums with squared weights (:func:`kernels.radon_joseph`), the
-    s-derivative as the sum of its squared taps (neighbouring offsets taken
-    as independent). It varies slowly, so every NOISE_ANGLE_STEP-th angle
+    Radon sums with squared weights and the covariance of neighbouring
+    offsets' sums (:func:`kernels.radon_joseph_variance`), both through the
+    s-derivative's taps. It varies slowly, so every NOISE_ANGLE_STEP-th angle
     and NOISE_S_STEP-th offset are kept.
     """
     c0, c1, r0, r1 = rect
@@ -166,10 +167,13 @@ def _view_variance(img, g_weights: ConeGeometry, ref, rect, angles, s0, ds, n_s,
     args = (pu, pv, cr, rr, (pp[0] - ref[0]) * pu, (pp[1] - ref[1]) * pv, D)
     var = kernels.cosine_weight(kernels.cosine_weight(var, *args), *args)
     a = angles[::NOISE_ANGLE_STEP]
-    radon = kernels.radon_joseph(var, pu, pv, cr, rr, np.cos(a), np.sin(a), s0, ds, n_s, True)
+    V, C = kernels.radon_joseph_variance(var, pu, pv, cr, rr, np.cos(a), np.sin(a), s0, ds, n_s)
     taps = derivative_kernel(smooth_px * min(pu, pv) / ds, order)
-    out = correlate1d(radon, taps**2, axis=-1, mode="constant") / ds**2
-    return out[:, ::NOISE_S_STEP]
+    # sum_j t_j R_(k+j): sum t_j^2 Var(R_(k+j)) + 2 sum t_j t_(j+1) Cov(R_(k+j), R_(k+j+1))
+    lag = np.append(taps[:-1] * taps[1:], 0.0)
+    out = (correlate1d(V, taps**2, axis=-1, mode="constant")
+           + 2 * correlate1d(C, lag, axis=-1, mode="constant")) / ds**2
+    return np.maximum(out[:, ::NOISE_S_STEP], 0.0)
 
 
 def _edge_flags(img, rect, level):
@@ -238,6 +242,10 @@ def build_tables(images, n_views: int, g_weights: ConeGeometry, opt: RPOptions, 
     (and their noise variance, with ``noise``)."""
     if opt.kernel_order not in KERNEL_REACH:
         raise InputError(f"rp-grid: kernel_order must be 2 or 4, not {opt.kernel_order!r}")
+    if not opt.offset_step_px > 0:
+        raise InputError(f"rp-grid: offset_step_px must be positive, not {opt.offset_step_px!r}")
+    if opt.interpolation not in LOOKUPS:
+        raise InputError(f"rp-grid: interpolation must be one of {sorted(LOOKUPS)}, not {opt.interpolation!r}")
     rows, cols = g_weights.shape
     rect = tuple(int(x) for x in opt.crop) if opt.crop is not None else (0, cols - 1, 0, rows - 1)
     c0, c1, r0, r1 = rect
@@ -245,7 +253,7 @@ def build_tables(images, n_views: int, g_weights: ConeGeometry, opt: RPOptions, 
         raise InputError(f"crop {rect}: must satisfy 0 <= col0 < col1 < {cols} and 0 <= row0 < row1 < {rows}")
     pu, pv = g_weights.pixel_pitch
     ref = ((cols - 1) / 2, (rows - 1) / 2)
-    ds = float(min(pu, pv))
+    ds = float(min(pu, pv)) * opt.offset_step_px
     half = np.hypot(max(ref[0] - c0, c1 - ref[0]) * pu, max(ref[1] - r0, r1 - ref[1]) * pv) + 4 * ds
     n_half = int(np.ceil(half / ds))
     n_s = 2 * n_half + 1
@@ -262,6 +270,8 @@ def build_tables(images, n_views: int, g_weights: ConeGeometry, opt: RPOptions, 
         variance = np.empty((n_views, n_av, len(range(0, n_s, NOISE_S_STEP))), np.float32)
     for k, img in enumerate(images):
         tables[k] = _view_table(img, g_weights, ref, rect, angles, s0, ds, n_s, opt.smooth_px, opt.kernel_order)
+        if opt.interpolation == "spline":
+            tables[k] = spline_filter1d(tables[k], 3, axis=-1, mode="mirror")
         if noise:
             variance[k] = _view_variance(img, g_weights, ref, rect, angles, s0, ds, n_s, opt.smooth_px,
                                              opt.kernel_order)
@@ -318,10 +328,13 @@ class _Planes(NamedTuple):
     fan2: object = None     # its elementwise square (for the noise variance)
 
 
+LOOKUPS = {"cubic": kernels.lookup_cubic, "spline": kernels.lookup_spline, "linear": kernels.lookup}
+
+
 class RPProblem:
     """The redundant-plane cost of one scan as a function of the five parameters."""
 
-    lookup = staticmethod(kernels.lookup_cubic)     # the tables' interpolation (see RPOptions.interpolation)
+    lookup = staticmethod(kernels.lookup_spline)    # the tables' interpolation (see RPOptions.interpolation)
 
     def __init__(self, nominal: ConeGeometry, transforms, tables: ViewTables, axis_direction, opt: RPOptions):
         self.nominal = nominal
@@ -331,9 +344,9 @@ class RPProblem:
         Tinv = transforms.inverse()
         self.sources = Tinv.apply(np.broadcast_to(nominal.source, (len(self.R), 3)))   # sample frame
         self.axis = np.asarray(axis_direction, float) / np.linalg.norm(axis_direction)
-        if opt.interpolation not in ("cubic", "linear"):
-            raise InputError(f"rp-grid: interpolation must be 'cubic' or 'linear', not {opt.interpolation!r}")
-        self.lookup = kernels.lookup_cubic if opt.interpolation == "cubic" else kernels.lookup
+        if opt.interpolation not in LOOKUPS:
+            raise InputError(f"rp-grid: interpolation must be one of {sorted(LOOKUPS)}, not {opt.interpolation!r}")
+        self.lookup = LOOKUPS[opt.interpolation]
         self._candidates()
         self.keep = np.ones(len(self.vi), bool)
         self._p_sel = np.zeros(5)
@@ -409,7 +422,7 @@ class RPProblem:
         # the derivative along s mixes lines up to 4-5 sigma away: they must be whole too
         # and as the search moves the geometry, lines move by a few pixels
         motion = self.opt.motion_margin_px if motion_px is None else motion_px
-        margin = (KERNEL_REACH[self.opt.kernel_order] * self.opt.smooth_px + 1 + motion) * self.tab.ds
+        margin = (KERNEL_REACH[self.opt.kernel_order] * self.opt.smooth_px + 1 + motion) * min(self.nominal.pixel_pitch)
         holder = np.zeros(len(self.vi), bool)
         for views, m in ((self.vi, self.mi), (self.vj, self.mj)):
             *_, alpha, s = self._lines(f, m)
@@ -678,7 +691,7 @@ class RPProblem:
         of the noise (0.5 px in v with a dense holder at 1e5 photons). Divided
         by the noise sigma at the lines themselves, every plane's noise part
         is 1 wherever they fall, and the bias is gone."""
-        return self.tab.variance is not None and self.opt.noise_weights and self.lookup is kernels.lookup_cubic
+        return self.tab.variance is not None and self.opt.noise_weights and self.lookup is not kernels.lookup
 
     def _plane_variance(self, f: _Frame, arrays: "_Planes", dframes=None):
         """Noise variance of each residual before weighting: the two look-ups'
@@ -1163,6 +1176,7 @@ def document(res: RPResult, prob: RPProblem, scan, opt: RPOptions) -> dict:
             "tables": {"views": int(prob.tab.tables.shape[0]), "angles": opt.n_angles,
                        "offsets": int(prob.tab.tables.shape[2]), "ds_mm": prob.tab.ds, "smooth_px": opt.smooth_px,
                        "kernel_order": opt.kernel_order, "fan_sigma_deg": opt.fan_sigma_deg,
+                       "interpolation": opt.interpolation,
                        "region": list(prob.tab.rect), "megabytes": prob.tab.nbytes / 1e6},
             "ranges": dict(opt.ranges), "grid_steps": dict(opt.grid_steps),
             "evaluations": res.evaluations,
