@@ -303,3 +303,31 @@ def test_tables_refuse_an_unknown_kernel_order_offset_step_or_interpolation():
         rpgrid.build_tables(iter([np.zeros((20, 24), np.float32)]), 1, g, rpgrid.RPOptions(offset_step_px=0.0))
     with pytest.raises(InputError, match="interpolation"):
         rpgrid.build_tables(iter([np.zeros((20, 24), np.float32)]), 1, g, rpgrid.RPOptions(interpolation="quintic"))
+
+
+def test_slice_sigma_follows_the_profile_of_a_correlated_parameter(monkeypatch):
+    """Batches whose minima spread along a narrow (v, theta) valley: with v
+    held, each batch's theta minimum collapses towards x and the sigma says
+    theta is known; along the profile (the covariance's column) it sees the
+    spread, and with a covariance the larger of the two is returned."""
+    rng = np.random.default_rng(3)
+    valley = np.array([0.0, 4.0, 0.0, 1.0, 0.0])            # v moves 4 px per degree of theta
+    minima = [t * valley + rng.normal(0, 0.01, 5) for t in (-2.0, -1.0, 0.0, 1.5, 2.5)]
+    across = np.array([0.0, 1.0, 0.0, -4.0, 0.0]) / np.sqrt(17)
+    H = 1e4 * np.diag([1.0, 0, 1.0, 0, 1.0]) + 1e4 * np.outer(across, across) + np.outer(valley, valley) / 17
+
+    class Prob:
+        def normalised_cost(self, q, m):
+            d = q - m
+            return float(d @ H @ d)
+
+    monkeypatch.setattr(rpgrid, "_pair_batches", lambda prob, x, seed, batches: minima)
+    opt = rpgrid.RPOptions()
+    x = np.zeros(5)
+    held = rpgrid.slice_sigma(Prob(), opt, x)
+    profile = rpgrid.slice_sigma(Prob(), opt, x, covariance=np.linalg.pinv(H + 1e-6 * np.eye(5)))
+    spread = np.std([m[3] for m in minima], ddof=1) / np.sqrt(len(minima))
+    k = NAMES.index("theta_deg")
+    assert held[k] < 0.2 * spread
+    step = 3 * rpgrid.RPOptions().ranges["theta_deg"] / 40
+    assert abs(profile[k] - (spread - 0.25 * step)) < 0.1 * spread
