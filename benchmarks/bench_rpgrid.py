@@ -16,6 +16,7 @@
 
     python benchmarks/bench_rpgrid.py                 # 20 scans, ~20 min on 2 cores
     python benchmarks/bench_rpgrid.py --scans 4 --no-sharpness-search
+    python benchmarks/bench_rpgrid.py --no-fdk --no-sharpness-search --interpolation spline
 """
 
 from __future__ import annotations
@@ -136,8 +137,11 @@ def main(argv=None):
     ap.add_argument("--no-fdk", action="store_true")
     ap.add_argument("--valley", default="", metavar="DV,DV,...",
                     help="restart the final refinement from these v shifts (px), e.g. -6,-3,3,6 (RPOptions.valley_probes)")
+    ap.add_argument("--interpolation", choices=sorted(rpgrid.LOOKUPS), default=rpgrid.RPOptions.interpolation,
+                    help="table look-ups of the refinements (RPOptions.interpolation)")
     args = ap.parse_args(argv)
-    opt = rpgrid.RPOptions(valley_probes=tuple(float(v) for v in args.valley.split(",") if v.strip()))
+    opt = rpgrid.RPOptions(valley_probes=tuple(float(v) for v in args.valley.split(",") if v.strip()),
+                           interpolation=args.interpolation)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     rows = []

@@ -334,7 +334,8 @@ LOOKUPS = {"cubic": kernels.lookup_cubic, "spline": kernels.lookup_spline, "line
 class RPProblem:
     """The redundant-plane cost of one scan as a function of the five parameters."""
 
-    lookup = staticmethod(kernels.lookup_spline)    # the tables' interpolation (see RPOptions.interpolation)
+    lookup = staticmethod(kernels.lookup_cubic)     # the tables' interpolation (see RPOptions.interpolation)
+    coarse = False                                  # inside _bilinear: whole-range scans, unweighted
 
     def __init__(self, nominal: ConeGeometry, transforms, tables: ViewTables, axis_direction, opt: RPOptions):
         self.nominal = nominal
@@ -347,6 +348,9 @@ class RPProblem:
         if opt.interpolation not in LOOKUPS:
             raise InputError(f"rp-grid: interpolation must be one of {sorted(LOOKUPS)}, not {opt.interpolation!r}")
         self.lookup = LOOKUPS[opt.interpolation]
+        # B-spline tables hold coefficients, not samples: a bilinear look-up
+        # of them would be a different (sharpened) function
+        self.coarse_lookup = kernels.lookup_spline if opt.interpolation == "spline" else kernels.lookup
         self._candidates()
         self.keep = np.ones(len(self.vi), bool)
         self._p_sel = np.zeros(5)
@@ -691,7 +695,8 @@ class RPProblem:
         of the noise (0.5 px in v with a dense holder at 1e5 photons). Divided
         by the noise sigma at the lines themselves, every plane's noise part
         is 1 wherever they fall, and the bias is gone."""
-        return self.tab.variance is not None and self.opt.noise_weights and self.lookup is not kernels.lookup
+        return (self.tab.variance is not None and self.opt.noise_weights and not self.coarse
+                and self.lookup is not kernels.lookup)
 
     def _plane_variance(self, f: _Frame, arrays: "_Planes", dframes=None):
         """Noise variance of each residual before weighting: the two look-ups'
@@ -832,13 +837,14 @@ def grid_search(prob: RPProblem, opt: RPOptions, progress=None) -> tuple[np.ndar
 
 @contextlib.contextmanager
 def _bilinear(prob: RPProblem):
-    """Bilinear look-ups meanwhile: for scans of whole ranges, which need
-    the cost's shape over pixels, not its smoothness within one."""
-    final, prob.lookup = prob.lookup, kernels.lookup
+    """Bilinear look-ups (B-spline ones on B-spline tables) and no noise
+    weights meanwhile: for scans of whole ranges, which need the cost's
+    shape over pixels, not its smoothness within one."""
+    final, prob.lookup, prob.coarse = prob.lookup, prob.coarse_lookup, True
     try:
         yield
     finally:
-        prob.lookup = final
+        prob.lookup, prob.coarse = final, False
 
 
 def _grid_passes(prob: RPProblem, opt: RPOptions, p, evals, progress):
@@ -975,11 +981,11 @@ def slice_sigma(prob: RPProblem, opt: RPOptions, x, batches: int = 5, n: int = 4
     With ``covariance`` (of the fit at ``x``) each parameter is also moved
     along its profile, the line on which the others follow it as they would
     if refined (column k of the covariance over its diagonal entry), and
-    the larger of the two spreads is returned. Theta and v are correlated (a tilt about u is to first
-    order a v shift), and with v held the cost rises along theta at once:
-    on benchmark scans whose theta missed by 1-2.5 deg the held slices gave
-    0.003-0.19 deg and the profiles 0.93-1.42 deg; on scans where theta was
-    right both stayed at zero.
+    the larger of the two spreads is returned. Theta and v are correlated
+    (a tilt about u is to first order a v shift), and with v held the cost
+    rises along theta at once: on benchmark scans whose theta missed by
+    1-2.5 deg the held slices gave 0.003-0.19 deg and the profiles
+    0.93-1.42 deg; on scans where theta was right both stayed at zero.
     """
     arrays = _pair_batches(prob, x, opt.seed + 11, batches)
     out = np.full(5, np.nan)
