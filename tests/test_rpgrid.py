@@ -127,7 +127,7 @@ def test_fourth_order_derivative_kernel_differentiates_a_cubic_exactly():
 
 
 def test_squared_joseph_sums_give_the_variance_of_each_line_sum():
-    """radon_joseph(var, squared=True) against the spread of the Radon
+    """radon_joseph_variance(var)'s variances against the spread of the Radon
     transforms of many noise images with that pixel variance."""
     rng = np.random.default_rng(5)
     yy, xx = np.mgrid[:40, :48]
@@ -136,7 +136,7 @@ def test_squared_joseph_sums_give_the_variance_of_each_line_sum():
     args = (0.5, 0.5, 23.5, 19.5, np.cos(ang), np.sin(ang), -12.0, 0.5, 49)
     sums = np.array([kernels.radon_joseph((rng.normal(size=var.shape) * np.sqrt(var)).astype(np.float32), *args)
                      for _ in range(1500)])
-    pred = kernels.radon_joseph(var, *args, True)
+    pred = kernels.radon_joseph_variance(var, *args)[0]
     inside = pred > 0.2 * pred.max()
     ratio = sums.var(axis=0)[inside] / pred[inside]
     # 1500 draws: each ratio is known to about 3.7 % (1 sigma)

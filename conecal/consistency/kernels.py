@@ -21,18 +21,15 @@ def cosine_weight(img, pu, pv, c_ref, r_ref, pp_u, pp_v, D):
 
 
 @njit(cache=True, parallel=True)
-def radon_joseph(img, pu, pv, c_ref, r_ref, cos_a, sin_a, s0, ds, n_s, squared=False):
+def radon_joseph(img, pu, pv, c_ref, r_ref, cos_a, sin_a, s0, ds, n_s):
     """2D Radon transform by Joseph's method.
 
     The line ``u cos(a) + v sin(a) = s`` (u, v in mm from pixel (c_ref,
     r_ref)) is stepped one pixel at a time along its major direction and the
     image interpolated linearly across it, so every line sees a smooth
     sampling of the image (pixel-driven splatting aliases at rational
-    slopes). Returns (n_a, n_s) in image units * mm.
-
-    ``squared``: the same sums with every weight squared, image units *
-    mm^2: for an image of independent pixel variances, the variance of
-    each line's sum.
+    slopes). Returns (n_a, n_s) in image units * mm. Their noise:
+    :func:`radon_joseph_variance`.
     """
     n_a = cos_a.shape[0]
     out = np.zeros((n_a, n_s), np.float32)
@@ -43,19 +40,32 @@ def radon_joseph(img, pu, pv, c_ref, r_ref, cos_a, sin_a, s0, ds, n_s, squared=F
         sa = sin_a[a]
         acc = np.zeros(n_s)
         if abs(ca) >= abs(sa):     # steep line: one sample per row
-            _angle_sums(img, s0, ds, sa, ca, pv, pu, r_ref, c_ref, squared, acc)
+            _angle_sums(img, s0, ds, sa, ca, pv, pu, r_ref, c_ref, acc)
             step = pv / abs(ca)
         else:                      # flat line: one sample per column
-            _angle_sums(img_t, s0, ds, ca, sa, pu, pv, c_ref, r_ref, squared, acc)
+            _angle_sums(img_t, s0, ds, ca, sa, pu, pv, c_ref, r_ref, acc)
             step = pu / abs(sa)
-        w = step * step if squared else step
         for k in range(n_s):
-            out[a, k] = acc[k] * w
+            out[a, k] = acc[k] * step
     return out
 
 
+@njit(cache=True, inline="always")
+def _row_span(base, step, top, n_s):
+    """First and last offset index whose line meets one image row within
+    [0, top] (``base``: the row coordinate of offset 0's line, ``step``:
+    the distance between successive offsets' lines along the row)."""
+    if step > 0:
+        klo = int(np.ceil((0.0 - base) / step))
+        khi = int(np.floor((top - base) / step))
+    else:
+        klo = int(np.ceil((top - base) / step))
+        khi = int(np.floor((0.0 - base) / step))
+    return max(klo, 0), min(khi, n_s - 1)
+
+
 @njit(cache=True)
-def _angle_sums(img, s0, ds, a_major, a_minor, p_major, p_minor, ref_major, ref_minor, squared, acc):
+def _angle_sums(img, s0, ds, a_major, a_minor, p_major, p_minor, ref_major, ref_minor, acc):
     """Adds to ``acc[k]`` the samples of ``img[major, minor]`` on the lines
     ``a_minor * x_minor + a_major * x_major = s0 + k ds`` (mm from
     (ref_major, ref_minor), pitches p_*), one per major index, linear across
@@ -74,26 +84,12 @@ def _angle_sums(img, s0, ds, a_major, a_minor, p_major, p_minor, ref_major, ref_
     top = n_minor - 1.0
     for j in range(n_major):
         base = first + dm * j
-        if step > 0:
-            klo = int(np.ceil((0.0 - base) / step))
-            khi = int(np.floor((top - base) / step))
-        else:
-            klo = int(np.ceil((top - base) / step))
-            khi = int(np.floor((0.0 - base) / step))
-        klo = max(klo, 0)
-        khi = min(khi, n_s - 1)
+        klo, khi = _row_span(base, step, top, n_s)
         row = img[j]
-        if squared:
-            for k in range(klo, khi + 1):
-                m = base + step * k
-                i = min(max(int(m), 0), n_minor - 2)
-                f = m - i
-                acc[k] += row[i] * (1.0 - f) * (1.0 - f) + row[i + 1] * f * f
-        else:
-            for k in range(klo, khi + 1):
-                m = base + step * k
-                i = min(max(int(m), 0), n_minor - 2)
-                acc[k] += row[i] + (row[i + 1] - row[i]) * (m - i)
+        for k in range(klo, khi + 1):
+            m = base + step * k
+            i = min(max(int(m), 0), n_minor - 2)
+            acc[k] += row[i] + (row[i + 1] - row[i]) * (m - i)
 
 
 @njit(cache=True, parallel=True)
@@ -142,14 +138,7 @@ def _angle_variance(img, s0, ds, a_major, a_minor, p_major, p_minor, ref_major, 
     top = n_minor - 1.0
     for j in range(n_major):
         base = first + dm * j
-        if step > 0:
-            klo = int(np.ceil((0.0 - base) / step))
-            khi = int(np.floor((top - base) / step))
-        else:
-            klo = int(np.ceil((top - base) / step))
-            khi = int(np.floor((0.0 - base) / step))
-        klo = max(klo, 0)
-        khi = min(khi, n_s - 1)
+        klo, khi = _row_span(base, step, top, n_s)
         row = img[j]
         for k in range(klo, khi + 1):
             m = base + step * k

@@ -244,8 +244,7 @@ def build_tables(images, n_views: int, g_weights: ConeGeometry, opt: RPOptions, 
         raise InputError(f"rp-grid: kernel_order must be 2 or 4, not {opt.kernel_order!r}")
     if not opt.offset_step_px > 0:
         raise InputError(f"rp-grid: offset_step_px must be positive, not {opt.offset_step_px!r}")
-    if opt.interpolation not in LOOKUPS:
-        raise InputError(f"rp-grid: interpolation must be one of {sorted(LOOKUPS)}, not {opt.interpolation!r}")
+    _lookup(opt)  # bad input before any table is made
     rows, cols = g_weights.shape
     rect = tuple(int(x) for x in opt.crop) if opt.crop is not None else (0, cols - 1, 0, rows - 1)
     c0, c1, r0, r1 = rect
@@ -331,6 +330,13 @@ class _Planes(NamedTuple):
 LOOKUPS = {"cubic": kernels.lookup_cubic, "spline": kernels.lookup_spline, "linear": kernels.lookup}
 
 
+def _lookup(opt: RPOptions):
+    """The refinements' table look-up of ``opt.interpolation``; InputError for an unknown one."""
+    if opt.interpolation not in LOOKUPS:
+        raise InputError(f"rp-grid: interpolation must be one of {sorted(LOOKUPS)}, not {opt.interpolation!r}")
+    return LOOKUPS[opt.interpolation]
+
+
 class RPProblem:
     """The redundant-plane cost of one scan as a function of the five parameters."""
 
@@ -345,9 +351,7 @@ class RPProblem:
         Tinv = transforms.inverse()
         self.sources = Tinv.apply(np.broadcast_to(nominal.source, (len(self.R), 3)))   # sample frame
         self.axis = np.asarray(axis_direction, float) / np.linalg.norm(axis_direction)
-        if opt.interpolation not in LOOKUPS:
-            raise InputError(f"rp-grid: interpolation must be one of {sorted(LOOKUPS)}, not {opt.interpolation!r}")
-        self.lookup = LOOKUPS[opt.interpolation]
+        self.lookup = _lookup(opt)
         # B-spline tables hold coefficients, not samples: a bilinear look-up
         # of them would be a different (sharpened) function
         self.coarse_lookup = kernels.lookup_spline if opt.interpolation == "spline" else kernels.lookup
