@@ -166,11 +166,14 @@ def small_circular(tmp_path_factory):
     return write_scan(sc, tmp_path_factory.mktemp("circ") / "c", seed=7)
 
 
-def test_jacobian_matches_finite_differences(small_circular):
+@pytest.mark.parametrize("freeze_grangeat", [False, True])
+def test_jacobian_matches_finite_differences(small_circular, freeze_grangeat):
+    """Also with the Grangeat factors following the geometry (the default),
+    whose derivative enters through the principal point and D."""
     from conecal.scan import load_scan
 
     scan = load_scan(small_circular)
-    opt = rpgrid.RPOptions(pairs=100, planes_per_pair=16)
+    opt = rpgrid.RPOptions(pairs=100, planes_per_pair=16, freeze_grangeat=freeze_grangeat)
     nom = scan.nominal_geometry()
     tab = rpgrid.build_tables((scan.stack.read(k) for k in range(scan.n_frames)), scan.n_frames, nom, opt)
     prob = rpgrid.RPProblem(nom, scan.nominal_transforms(), tab, [0, 1, 0], opt)
