@@ -126,7 +126,7 @@ def test_fourth_order_derivative_kernel_differentiates_a_cubic_exactly():
         derivative_kernel(3.0, 3)
 
 
-def test_squared_joseph_sums_give_the_variance_of_each_line_sum():
+def test_joseph_variance_gives_the_variance_of_each_line_sum():
     """radon_joseph_variance(var)'s variances against the spread of the Radon
     transforms of many noise images with that pixel variance."""
     rng = np.random.default_rng(5)

@@ -559,8 +559,7 @@ class RPProblem:
         cosine weights are), only the lines' positions depend on the geometry."""
         a, b, c, h, alpha, s = self._lines(f, m)
         T, T_a, T_s = self.lookup(self.tab.tables, views, alpha, s, self.tab.s0, self.tab.ds)
-        ca, sa = a / h, b / h
-        spp = s - (f.pp[0] * ca + f.pp[1] * sa)
+        ca, sa, spp = self._from_principal_point(f, a, b, h, s)
         frozen = F is not None
         if not frozen:
             F = 1.0 + spp**2 / f.D**2
@@ -573,6 +572,13 @@ class RPProblem:
             dF = 0.0 if frozen else self._grangeat_derivative(f, df, ca, sa, spp, dalpha, dsl)
             J[:, k] = dF * T + F * (T_a * dalpha + T_s * dsl)
         return val, J
+
+    @staticmethod
+    def _from_principal_point(f: _Frame, a, b, h, s):
+        """cos and sin of the lines' normal angle, and their signed distance
+        from the principal point (mm)."""
+        ca, sa = a / h, b / h
+        return ca, sa, s - (f.pp[0] * ca + f.pp[1] * sa)
 
     @staticmethod
     def _grangeat_derivative(f: _Frame, df: _Frame, ca, sa, spp, dalpha, dsl):
@@ -596,15 +602,14 @@ class RPProblem:
         scale), and its derivatives with ``dframes``."""
         a, b, c, h, alpha, s = self._lines(f, m)
         V, V_a, V_s = kernels.lookup_cubic(self.tab.variance, views, alpha, s, self.tab.s0, self.tab.var_ds, 1.0)
+        ca, sa, spp = self._from_principal_point(f, a, b, h, s)
         frozen = F is not None
         if not frozen:
-            F = self._grangeat(f, m)
+            F = 1.0 + spp**2 / f.D**2
         F2 = F**2
         val = F2 * V
         if dframes is None:
             return val
-        ca, sa = a / h, b / h
-        spp = s - (f.pp[0] * ca + f.pp[1] * sa)
         J = np.empty((len(val), len(dframes)))
         for k, df in enumerate(dframes):
             dalpha, dsl = self._line_derivatives(m, a, b, c, h, df)
@@ -685,7 +690,7 @@ class RPProblem:
 
     def _grangeat(self, f: _Frame, m):
         a, b, _, h, _, s = self._lines(f, m)
-        spp = s - (f.pp[0] * a + f.pp[1] * b) / h
+        spp = self._from_principal_point(f, a, b, h, s)[2]
         return 1.0 + spp**2 / f.D**2
 
     def _residuals(self, p, arrays: "_Planes", energy=False):
@@ -1012,6 +1017,7 @@ def slice_sigma(prob: RPProblem, opt: RPOptions, x, batches: int = 5, n: int = 4
     0.93-1.42 deg; on scans where theta was right both stayed at zero.
     """
     arrays = _pair_batches(prob, x, opt.seed + 11, batches)
+    x0 = np.asarray(x, float)
     out = np.full(5, np.nan)
     if len(arrays) < 3:
         return out
@@ -1024,8 +1030,7 @@ def slice_sigma(prob: RPProblem, opt: RPOptions, x, batches: int = 5, n: int = 4
         for direction in directions:
             mins = []
             for arr in arrays:
-                c = np.array([prob.normalised_cost(np.asarray(x, float) + (val - x[k]) * direction, arr)
-                              for val in grid])
+                c = np.array([prob.normalised_cost(x0 + (val - x[k]) * direction, arr) for val in grid])
                 i = int(np.argmin(c))
                 m = grid[i]
                 if 0 < i < n - 1:
