@@ -139,9 +139,13 @@ def main(argv=None):
                     help="restart the final refinement from these v shifts (px), e.g. -6,-3,3,6 (RPOptions.valley_probes)")
     ap.add_argument("--interpolation", choices=sorted(rpgrid.LOOKUPS), default=rpgrid.RPOptions.interpolation,
                     help="table look-ups of the refinements (RPOptions.interpolation)")
+    ap.add_argument("--grangeat", choices=("fixed", "following"),
+                    default="fixed" if rpgrid.RPOptions.freeze_grangeat else "following",
+                    help="Grangeat factors fixed at the planes' selection or following the candidate "
+                         "(RPOptions.freeze_grangeat)")
     args = ap.parse_args(argv)
     opt = rpgrid.RPOptions(valley_probes=tuple(float(v) for v in args.valley.split(",") if v.strip()),
-                           interpolation=args.interpolation)
+                           interpolation=args.interpolation, freeze_grangeat=args.grangeat == "fixed")
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     rows = []
@@ -156,15 +160,19 @@ def main(argv=None):
             res, prob = rpgrid.run(scan, opt)
             dt = time.perf_counter() - t0
             err, ok = judge(res.x, res.sigma, truth)
+            # an unconverged refinement is a failure whatever its numbers
+            # (the CLI exits 1 on it)
+            ok = ok & res.fit.success
             stack_mb = scan.n_frames * np.prod(scan.stack.shape) * 4 / 1e6
             rows.append({"kind": kind, "seed": seed, "seconds": dt, "ok": bool(ok.all()), "err": err.tolist(),
                          "sigma": [float(s) for s in res.sigma], "truth": truth.tolist(),
                          "tables_mb": prob.tab.nbytes / 1e6, "stack_mb": stack_mb, "planes": res.planes,
-                         "at_bound": res.at_bound})
+                         "at_bound": res.at_bound, "converged": bool(res.fit.success), "nfev": int(res.fit.nfev)})
             flag = "ok  " if ok.all() else "FAIL"
             print(f"{flag} {kind:10s} seed {seed}: " + "  ".join(
                 f"{n.split('_')[0] if not n.startswith('shift') else n[6]}={e:+.3f}(σ{s:.3f})"
-                for n, e, s in zip(NAMES, err, res.sigma)) + f"  {dt:.1f} s", flush=True)
+                for n, e, s in zip(NAMES, err, res.sigma)) + f"  {dt:.1f} s, {res.fit.nfev} evaluations"
+                + ("" if res.fit.success else f", NOT CONVERGED ({res.fit.message})"), flush=True)
             if first is None and kind == "plain":
                 first = (path, truth, res, dt)
                 import shutil

@@ -283,6 +283,15 @@ def test_small_scan_recovers_shift_and_rotation(small_circular, tmp_path):
     assert doc["fit"]["cost_final"] < 0.2 * doc["fit"]["cost_nominal"]
 
 
+def test_pass_two_draws_more_pairs_only_where_most_planes_were_dropped():
+    opt = rpgrid.RPOptions(pairs=1000, min_used_fraction=0.5, max_pairs_factor=4.0)
+    assert rpgrid.pass2_pairs(opt, {"used": 30000, "candidates": 40000}) == 1000
+    # a quarter used: twice the pairs reach half of the candidates
+    assert rpgrid.pass2_pairs(opt, {"used": 10000, "candidates": 40000}) == 2000
+    assert rpgrid.pass2_pairs(opt, {"used": 100, "candidates": 40000}) == 4000
+    assert rpgrid.pass2_pairs(opt, {"used": 0, "candidates": 40000}) == 4000
+
+
 def test_cli_refuses_bad_input(small_circular, small_linear_scan, tmp_path):
     run = CliRunner().invoke
     r = run(cli, ["rp-grid", str(small_linear_scan), "-o", str(tmp_path / "x.json")])

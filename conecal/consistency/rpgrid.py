@@ -26,7 +26,8 @@ How the work is split:
   baseline), kept where they pass within the object's bounding sphere;
   planes whose line leaves either view's detector through a truncated edge
   (object present at the border: a long object, a wide object or a holder
-  reaching out of the field of view) are dropped, automatically;
+  reaching out of the field of view) are dropped, automatically; where
+  that leaves under half of them, pass 2 draws more pairs;
 - the five parameters are found by 2D grids over (shift u, eta),
   (shift v, theta), (theta, phi) and (shift v, theta) again, joint local
   refinements from a 3x3 pattern of tilts (the tilts barely change the
@@ -40,7 +41,7 @@ from __future__ import annotations
 
 import contextlib
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import NamedTuple
 
 import numpy as np
@@ -63,7 +64,14 @@ class RPOptions:
     offset_step_px: float = 1.0         # table offsets every this many pixels (0.5: twice the tables' time and size)
     smooth_px: float = 3.0              # Gaussian sigma of the s-derivative (px): less noise bias
     kernel_order: int = 2               # 4: the s-derivative's kernel also differentiates cubics exactly
-    pairs: int = 1500                   # random view pairs
+    pairs: int = 1500                   # random view pairs (pass 2: more where truncation drops most planes)
+    # Pass 2 draws more pairs (up to max_pairs_factor x) when pass 1 used
+    # under this fraction of its candidate planes: transaxial truncation
+    # keeps only steep lines (~16 % of them), and on so few planes the noise
+    # ripples the cost along v more than its slope (transaxial 115, tables at
+    # the truth, refined from it: v +0.58 px with 1,500 pairs, +0.05 with 4,000)
+    min_used_fraction: float = 0.5
+    max_pairs_factor: float = 4.0
     planes_per_pair: int = 48           # at most, evenly over the fan; its full step is FAN_STEP_DEG
     # Gaussian sigma (deg of the planes' angle about the pair's baseline) of a
     # smoothing along each pair's fan (0: off). Each view's table is smoothed
@@ -91,10 +99,13 @@ class RPOptions:
     # point, which a tilt of 1 deg moves by 10 mm, so fixed factors pull the
     # tilts towards where the planes were chosen (noiseless plain scan,
     # tables made 5 deg off in theta: theta -1.02 deg off fixed, -0.15
-    # following; 20-scan benchmark 17/20 following against 16/20). Still
-    # fixed by default: following, the refinement of a small 96x96 test
-    # scan creeps along theta and stops unconverged after 50 evaluations.
-    freeze_grangeat: bool = True
+    # following; 20-scan benchmark with converged refinements, 1,500 pairs:
+    # 15/20 following against 14/20 fixed).
+    freeze_grangeat: bool = False
+    # evaluations of each joint refinement (scipy's trf counts its
+    # evaluations; along the shallow (v, theta) valley it may take ~90 steps
+    # of ~1e-3 chi^2 each before its tolerance holds)
+    refine_max_nfev: int = 200
     # v shifts (px) from which the final refinement is restarted along the
     # shallow (v, theta) valley; off by default: it costs ~30 s a scan (see valley())
     valley_probes: tuple = ()
@@ -933,7 +944,7 @@ def refine(prob: RPProblem, opt: RPOptions, p):
     fit = None
     for _ in range(2):
         fit = solve(_parameters(opt, p), lambda x: prob.residuals(x) / scale, lambda x: prob.jacobian(x) / scale,
-                    scale_covariance=True, max_nfev=50, tol=1e-10, loss=opt.loss, f_scale=3.0)
+                    scale_covariance=True, max_nfev=opt.refine_max_nfev, tol=1e-10, loss=opt.loss, f_scale=3.0)
         p = fit.x
         prob.select(p)
     return fit, scale
@@ -1128,6 +1139,17 @@ def check_scan(scan) -> np.ndarray:
     return np.asarray(rotary[0].direction, float)
 
 
+def pass2_pairs(opt: RPOptions, selection: dict) -> int:
+    """View pairs of pass 2: ``opt.pairs``, or more (at most
+    ``max_pairs_factor`` times) so that the used planes reach
+    ``min_used_fraction`` of pass 1's candidates."""
+    used, candidates = selection["used"], selection["candidates"]
+    want = opt.min_used_fraction * candidates
+    if used >= want:
+        return opt.pairs
+    return int(min(np.ceil(opt.pairs * want / max(used, 1)), opt.max_pairs_factor * opt.pairs))
+
+
 def run(scan, opt: RPOptions, progress=None) -> tuple[RPResult, RPProblem]:
     """rp-grid on a loaded circular scan, in two passes over the stack.
 
@@ -1163,17 +1185,18 @@ def run(scan, opt: RPOptions, progress=None) -> tuple[RPResult, RPProblem]:
     t1 = time.perf_counter()
     p_grid, evals = grid_search(prob1, opt, progress=lambda d, o: progress and progress(len(first) + round(10 * d / o), total))
     fit1, _ = refine(prob1, opt, p_grid)
+    opt2 = replace(opt, pairs=pass2_pairs(opt, prob1.last_selection))
     del prob1, tab1
     t2 = time.perf_counter()
     tab2 = build_tables(images(range(n)), n, misaligned(nominal, fit1.x), opt, progress=prog(len(first) + 10),
                         noise=opt.noise_weights)
-    prob = RPProblem(nominal, T_all, tab2, axis, opt)
+    prob = RPProblem(nominal, T_all, tab2, axis, opt2)
     t3 = time.perf_counter()
-    fit, scale = refine(prob, opt, fit1.x)
+    fit, scale = refine(prob, opt2, fit1.x)
     n_valley = 0
     if opt.valley_probes:
-        fit, scale, n_valley = valley(prob, opt, fit, scale, opt.valley_probes)
-    res = finish(prob, opt, fit, scale, p_grid, evals + fit1.nfev + n_valley,
+        fit, scale, n_valley = valley(prob, opt2, fit, scale, opt.valley_probes)
+    res = finish(prob, opt2, fit, scale, p_grid, evals + fit1.nfev + n_valley,
                  {"tables_pass1": t1 - t0, "search_pass1": t2 - t1, "tables_pass2": t3 - t2})
     res.seconds["refine_pass2"] = time.perf_counter() - t3
     res.seconds["total"] = time.perf_counter() - t0
