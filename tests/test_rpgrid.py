@@ -281,6 +281,7 @@ def test_small_scan_recovers_shift_and_rotation(small_circular, tmp_path):
     assert abs(est["eta_deg"]["value"] - 1.0) < 0.1
     assert set(doc["cost_slices"]) == set(NAMES)
     assert doc["fit"]["cost_final"] < 0.2 * doc["fit"]["cost_nominal"]
+    assert doc["fit"]["converged"] and doc["fit"]["grangeat_factors"] == "following"
 
 
 def test_pass_two_draws_more_pairs_only_where_most_planes_were_dropped():

@@ -102,9 +102,9 @@ class RPOptions:
     # following; 20-scan benchmark with converged refinements, 1,500 pairs:
     # 15/20 following against 14/20 fixed).
     freeze_grangeat: bool = False
-    # evaluations of each joint refinement (scipy's trf counts its
-    # evaluations; along the shallow (v, theta) valley it may take ~90 steps
-    # of ~1e-3 chi^2 each before its tolerance holds)
+    # evaluations allowed to each joint refinement: along the shallow
+    # (v, theta) valley it creeps in small steps (20-scan benchmark: up to
+    # ~120; the small 96x96 test scan 91); unconverged, the CLI exits 1
     refine_max_nfev: int = 200
     # v shifts (px) from which the final refinement is restarted along the
     # shallow (v, theta) valley; off by default: it costs ~30 s a scan (see valley())
@@ -1157,7 +1157,8 @@ def run(scan, opt: RPOptions, progress=None) -> tuple[RPResult, RPProblem]:
     cosine weights; grids and a first refinement. Pass 2: tables of every
     view with the cosine weights of pass 1's geometry (a 2 deg tilt moves
     the principal point by ~20 mm, and the weights' error would mimic a
-    tilt), then the final refinement and sigma. Frames are read one at a
+    tilt) and more view pairs where pass 1 used few of its planes
+    (``pass2_pairs``), then the final refinement and sigma. Frames are read one at a
     time in each pass.
     """
     axis = check_scan(scan)
@@ -1249,6 +1250,7 @@ def document(res: RPResult, prob: RPProblem, scan, opt: RPOptions) -> dict:
             "evaluations": res.evaluations,
             "seconds": res.seconds,
             "converged": bool(res.fit.success),
+            "grangeat_factors": "fixed" if opt.freeze_grangeat else "following",
         },
         "cost_slices": res.slices,
         "units": {"length": "mm", "angle": "deg", "shift": "px of the nominal detector"},
