@@ -46,7 +46,7 @@ def test_grangeat_relation_on_a_tilted_detector():
     pts = c + rng.normal(0, sig, (200, 3))
     m = np.cross(pts - g.source, rng.normal(size=(200, 3)))
     m /= np.linalg.norm(m, axis=1, keepdims=True)
-    val = prob._values(rpgrid._frame(g, tab.ref), np.zeros(200, np.int64), m)
+    val = prob._look(rpgrid._frame(g, tab.ref), np.zeros(200, np.int64), m)[0]
     t = m @ g.source - m @ c
     ref = amp * 2 * np.pi * sig**2 * (-t / sig**2) * np.exp(-t**2 / (2 * sig**2))
     assert np.abs(val - ref).max() < 0.01 * np.abs(ref).max()
@@ -205,7 +205,9 @@ def test_noise_weighted_residuals_and_their_jacobian(small_circular, fan_sigma_d
     assert prob.noise_weighted and np.all(prob._kept.weight == 1.0)
     assert (prob._kept.fan is not None) == (fan_sigma_deg > 0)
     f = rpgrid._frame(misaligned(nom, p), tab.ref)
-    S = prob._plane_variance(f, prob._kept)
+    A = prob._kept
+    S = prob._plane_variance(A, prob._look(f, A.vi, A.mi, A.Fi, variance=True)[1],
+                             prob._look(f, A.vj, A.mj, A.Fj, variance=True)[1])
     assert np.all(S > 0)
     with rpgrid._bilinear(prob):
         assert not prob.noise_weighted

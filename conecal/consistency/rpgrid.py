@@ -467,7 +467,7 @@ class RPProblem:
         idx = np.flatnonzero(keep)
         empty = np.zeros(len(keep), bool)
         if idx.size:
-            size = np.abs(self._values(f, self.vi[idx], self.mi[idx])) + np.abs(self._values(f, self.vj[idx], self.mj[idx]))
+            size = np.abs(self._look(f, self.vi[idx], self.mi[idx])[0]) + np.abs(self._look(f, self.vj[idx], self.mj[idx])[0])
             empty[idx[size < 0.01 * np.percentile(size, 99)]] = True
             keep &= ~empty
         self.keep = keep
@@ -564,25 +564,41 @@ class RPProblem:
 
     # -- cost, residuals, Jacobian ------------------------------------------------------------------
 
-    def _values(self, f: _Frame, views, m, want_jac=False, dframes=None, F=None):
-        """Grangeat factor times table value per plane (and d/dparameters).
-        With ``F`` given (frozen at the selection geometry, as the tables'
-        cosine weights are), only the lines' positions depend on the geometry."""
+    def _look(self, f: _Frame, views, m, F=None, dframes=None, variance=False):
+        """Per plane of normals ``m`` seen by ``views``: the Grangeat factor
+        times the table value, and with ``variance`` the noise variance of
+        that value (F^2 times the noise table; the tables' global scale),
+        both from one computation of the lines. With ``dframes`` also their
+        derivatives along each parameter: returns (value, J, variance, J of
+        the variance), else (value, variance); the variance's parts are None
+        without ``variance``. With ``F`` given (frozen at the selection
+        geometry, as the tables' cosine weights are), only the lines'
+        positions depend on the geometry."""
         a, b, c, h, alpha, s = self._lines(f, m)
-        T, T_a, T_s = self.lookup(self.tab.tables, views, alpha, s, self.tab.s0, self.tab.ds)
         ca, sa, spp = self._from_principal_point(f, a, b, h, s)
         frozen = F is not None
         if not frozen:
-            F = 1.0 + spp**2 / f.D**2
-        val = F * T
-        if not want_jac:
-            return val
-        J = np.empty((len(val), len(dframes)))
+            F = self._grangeat_factor(f, spp)
+        looks = [(self.lookup(self.tab.tables, views, alpha, s, self.tab.s0, self.tab.ds), F)]
+        if variance:
+            looks.append((kernels.lookup_cubic(self.tab.variance, views, alpha, s, self.tab.s0, self.tab.var_ds, 1.0),
+                          F**2))
+        vals = [w * T for (T, _, _), w in looks] + [None] * (2 - len(looks))
+        if dframes is None:
+            return vals[0], vals[1]
+        Js = [np.empty((len(s), len(dframes))) for _ in looks] + [None] * (2 - len(looks))
         for k, df in enumerate(dframes):
             dalpha, dsl = self._line_derivatives(m, a, b, c, h, df)
             dF = 0.0 if frozen else self._grangeat_derivative(f, df, ca, sa, spp, dalpha, dsl)
-            J[:, k] = dF * T + F * (T_a * dalpha + T_s * dsl)
-        return val, J
+            for power, ((T, T_a, T_s), w) in enumerate(looks, start=1):
+                dw = dF if power == 1 else 2 * F * dF
+                Js[power - 1][:, k] = dw * T + w * (T_a * dalpha + T_s * dsl)
+        return vals[0], Js[0], vals[1], Js[1]
+
+    @staticmethod
+    def _grangeat_factor(f: _Frame, spp):
+        """Grangeat's factor (D^2 + spp^2)/D^2 of lines ``spp`` (mm) from the principal point."""
+        return 1.0 + spp**2 / f.D**2
 
     @staticmethod
     def _from_principal_point(f: _Frame, a, b, h, s):
@@ -607,26 +623,6 @@ class RPProblem:
         dc = m @ df.Q
         dh = (a * da + b * db) / h
         return (a * db - b * da) / h**2, -dc / h + c * dh / h**2
-
-    def _variance(self, f: _Frame, views, m, F, dframes=None):
-        """Noise variance of each plane's value ``F * T`` (the tables' global
-        scale), and its derivatives with ``dframes``."""
-        a, b, c, h, alpha, s = self._lines(f, m)
-        V, V_a, V_s = kernels.lookup_cubic(self.tab.variance, views, alpha, s, self.tab.s0, self.tab.var_ds, 1.0)
-        ca, sa, spp = self._from_principal_point(f, a, b, h, s)
-        frozen = F is not None
-        if not frozen:
-            F = 1.0 + spp**2 / f.D**2
-        F2 = F**2
-        val = F2 * V
-        if dframes is None:
-            return val
-        J = np.empty((len(val), len(dframes)))
-        for k, df in enumerate(dframes):
-            dalpha, dsl = self._line_derivatives(m, a, b, c, h, df)
-            dF2 = 0.0 if frozen else 2 * F * self._grangeat_derivative(f, df, ca, sa, spp, dalpha, dsl)
-            J[:, k] = dF2 * V + F2 * (V_a * dalpha + V_s * dsl)
-        return val, J
 
     def _dframes(self, p, f: _Frame, step=1e-6):
         """Derivatives of the lab detector quantities along each parameter."""
@@ -659,8 +655,8 @@ class RPProblem:
         vi, mi, vj, mj = self.vi[idx], self.mi[idx], self.vj[idx][perm], self.mj[idx][perm]
         Fi, Fj = (self._grangeat(f, mi), self._grangeat(f, mj)) if self.opt.freeze_grangeat else (None, None)
         W = self._fan_matrix(idx) if fan and self.opt.fan_sigma_deg > 0 else None
-        size = np.abs(self._values(f, vi, mi, F=Fi))
-        size[perm] += np.abs(self._values(f, vj, mj, F=Fj))
+        size = np.abs(self._look(f, vi, mi, F=Fi)[0])
+        size[perm] += np.abs(self._look(f, vj, mj, F=Fj)[0])
         size *= 0.5
         # c: a typical signal level, not the median: with truncation most
         # planes may miss the object, and noise-only planes must not set the scale
@@ -701,21 +697,21 @@ class RPProblem:
 
     def _grangeat(self, f: _Frame, m):
         a, b, _, h, _, s = self._lines(f, m)
-        spp = self._from_principal_point(f, a, b, h, s)[2]
-        return 1.0 + spp**2 / f.D**2
+        return self._grangeat_factor(f, self._from_principal_point(f, a, b, h, s)[2])
 
     def _residuals(self, p, arrays: "_Planes", energy=False):
         A = arrays
         f = _frame(misaligned(self.nominal, p), self.tab.ref)
-        a = self._values(f, A.vi, A.mi, F=A.Fi)
-        b = self._values(f, A.vj, A.mj, F=A.Fj)
+        weighted = self.noise_weighted and not energy
+        a, Va = self._look(f, A.vi, A.mi, F=A.Fi, variance=weighted)
+        b, Vb = self._look(f, A.vj, A.mj, F=A.Fj, variance=weighted)
         out = a.copy()
         out[A.perm] -= b
         if A.fan is not None:
             out = A.fan @ out
         if not energy:
-            if self.noise_weighted:
-                out /= np.sqrt(self._plane_variance(f, arrays))
+            if weighted:
+                out /= np.sqrt(self._plane_variance(A, Va, Vb))
             return out * A.weight
         out *= A.weight
         bw = np.empty_like(b)
@@ -738,23 +734,23 @@ class RPProblem:
         return (self.tab.variance is not None and self.opt.noise_weights and not self.coarse
                 and self.lookup is not kernels.lookup)
 
-    def _plane_variance(self, f: _Frame, arrays: "_Planes", dframes=None):
-        """Noise variance of each residual before weighting: the two look-ups'
-        variances, through the smoothing along the fan (taken as independent
-        between the fan's planes: their lines are pixels apart)."""
-        A = arrays
-        out = self._variance(f, A.vi, A.mi, A.Fi, dframes)
-        other = self._variance(f, A.vj, A.mj, A.Fj, dframes)
-        if dframes is None:
-            out[A.perm] += other
-            if A.fan2 is not None:
-                out = A.fan2 @ out
-            return np.maximum(out, 1e-12)
-        out[0][A.perm] += other[0]
-        out[1][A.perm] += other[1]
+    @staticmethod
+    def _plane_variance(A: "_Planes", Vi, Vj, JVi=None, JVj=None):
+        """Noise variance of each residual before weighting from the two
+        look-ups' variances (and its Jacobian from theirs), through the
+        smoothing along the fan (taken as independent between the fan's
+        planes: their lines are pixels apart)."""
+        Vi = Vi.copy()
+        Vi[A.perm] += Vj
         if A.fan2 is not None:
-            out = (A.fan2 @ out[0], A.fan2 @ out[1])
-        return np.maximum(out[0], 1e-12), out[1]
+            Vi = A.fan2 @ Vi
+        if JVi is None:
+            return np.maximum(Vi, 1e-12)
+        JVi = JVi.copy()
+        JVi[A.perm] += JVj
+        if A.fan2 is not None:
+            JVi = A.fan2 @ JVi
+        return np.maximum(Vi, 1e-12), JVi
 
     def normalised_cost(self, p, arrays=None) -> float:
         """c_RP: the squared disagreement over the planes' squared values.
@@ -772,18 +768,19 @@ class RPProblem:
         A = self._kept if arrays is None else arrays
         f = _frame(misaligned(self.nominal, p), self.tab.ref)
         dfs = self._dframes(p, f)
-        d, J = self._values(f, A.vi, A.mi, True, dfs, F=A.Fi)
-        b, Jj = self._values(f, A.vj, A.mj, True, dfs, F=A.Fj)
+        weighted = self.noise_weighted
+        d, J, Vi, JVi = self._look(f, A.vi, A.mi, A.Fi, dfs, variance=weighted)
+        b, Jj, Vj, JVj = self._look(f, A.vj, A.mj, A.Fj, dfs, variance=weighted)
         J[A.perm] -= Jj
-        if self.noise_weighted:
+        if weighted:
             # r = d / sqrt(S): dr = dd / sqrt(S) - d dS / (2 S^1.5)
             d[A.perm] -= b
             if A.fan is not None:
                 d = A.fan @ d
-            S, JS = self._plane_variance(f, A, dfs)
+            S, JS = self._plane_variance(A, Vi, Vj, JVi, JVj)
         if A.fan is not None:
             J = A.fan @ J
-        if self.noise_weighted:
+        if weighted:
             J = J / np.sqrt(S)[:, None] - (0.5 * d / S**1.5)[:, None] * JS
         return J * np.reshape(A.weight, (-1, 1))
 
