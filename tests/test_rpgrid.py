@@ -293,6 +293,31 @@ def test_pass_two_draws_more_pairs_only_where_most_planes_were_dropped():
     assert rpgrid.pass2_pairs(opt, {"used": 10000, "candidates": 40000}) == 2000
     assert rpgrid.pass2_pairs(opt, {"used": 100, "candidates": 40000}) == 4000
     assert rpgrid.pass2_pairs(opt, {"used": 0, "candidates": 40000}) == 4000
+    # drawn by yield: 100 pairs in each of three bins, 10 planes a pair in the
+    # last only; weighted draws land there and bring 10 planes each
+    yield_ = (np.array([0.0, 60.0, 120.0, 180.0]), np.array([0.0, 0.0, 10.0]), np.array([100, 100, 100]))
+    assert rpgrid.pass2_pairs(opt, {"used": 10000, "candidates": 40000}, yield_) == 2000
+
+
+def test_pairs_drawn_by_yield_only_at_separations_that_kept_planes(small_circular):
+    """separation_yield counts used planes per pair by the views'
+    separation; a problem built with it draws no pair where that is 0."""
+    from conecal.scan import load_scan
+
+    scan = load_scan(small_circular)
+    opt = rpgrid.RPOptions(pairs=300, planes_per_pair=8)
+    nom = scan.nominal_geometry()
+    tab = rpgrid.build_tables((scan.stack.read(k) for k in range(scan.n_frames)), scan.n_frames, nom, opt)
+    prob = rpgrid.RPProblem(nom, scan.nominal_transforms(), tab, [0, 1, 0], opt)
+    prob.select(np.zeros(5))
+    edges, per_pair, pairs = prob.separation_yield(bin_deg=10.0)
+    assert len(per_pair) == len(pairs) == len(edges) - 1 == 18
+    assert pairs.sum() == prob.n_pairs and per_pair[pairs > 0].min() > 0
+    assert np.isclose(np.sum(per_pair * pairs), prob.keep.sum())
+    only = np.where(edges[:-1] >= 150.0, per_pair, 0.0)
+    weighted = rpgrid.RPProblem(nom, scan.nominal_transforms(), tab, [0, 1, 0], opt, (edges, only, pairs))
+    sep = weighted._separation(weighted.vi, weighted.vj)
+    assert weighted.n_pairs > 50 and sep.min() >= 150.0 - 1e-9
 
 
 def test_cli_refuses_bad_input(small_circular, small_linear_scan, tmp_path):

@@ -27,7 +27,8 @@ How the work is split:
   planes whose line leaves either view's detector through a truncated edge
   (object present at the border: a long object, a wide object or a holder
   reaching out of the field of view) are dropped, automatically; where
-  that leaves under half of them, pass 2 draws more pairs;
+  that leaves under half of them, pass 2 draws more pairs, and draws them
+  at the separations where pass 1's planes survived (``separation_yield``);
 - the five parameters are found by 2D grids over (shift u, eta),
   (shift v, theta), (theta, phi) and (shift v, theta) again, joint local
   refinements from a 3x3 pattern of tilts (the tilts barely change the
@@ -362,7 +363,11 @@ class RPProblem:
     lookup = staticmethod(kernels.lookup_cubic)     # the tables' interpolation (see RPOptions.interpolation)
     coarse = False                                  # inside _bilinear: whole-range scans, unweighted
 
-    def __init__(self, nominal: ConeGeometry, transforms, tables: ViewTables, axis_direction, opt: RPOptions):
+    def __init__(self, nominal: ConeGeometry, transforms, tables: ViewTables, axis_direction, opt: RPOptions,
+                 pair_yield=None):
+        """``pair_yield``: (bin edges in deg, used planes per pair) over the
+        views' separation (:meth:`separation_yield` of an earlier pass); pairs
+        are then drawn in proportion to it instead of uniformly."""
         self.nominal = nominal
         self.tab = tables
         self.opt = opt
@@ -374,14 +379,14 @@ class RPProblem:
         # B-spline tables hold coefficients, not samples: a bilinear look-up
         # of them would be a different (sharpened) function
         self.coarse_lookup = kernels.lookup_spline if opt.interpolation == "spline" else kernels.lookup
-        self._candidates()
+        self._candidates(pair_yield)
         self.keep = np.ones(len(self.vi), bool)
         self._p_sel = np.zeros(5)
         self._kept = self._arrays(np.arange(len(self.vi)), self._p_sel)
 
     # -- the plane sample ------------------------------------------------------------------------------
 
-    def _candidates(self):
+    def _candidates(self, pair_yield=None):
         opt, g = self.opt, self.nominal
         rng = np.random.default_rng(opt.seed)
         n = len(self.R)
@@ -392,12 +397,19 @@ class RPProblem:
         r_obj = np.hypot(cols * g.pixel_pitch[0], rows * g.pixel_pitch[1]) / 2 / mag
         self.r_obj = r_obj
         S = self.sources
-        i = rng.integers(0, n, 8 * opt.pairs)
-        j = rng.integers(0, n, 8 * opt.pairs)
-        base = S[j] - S[i]
-        dist = np.linalg.norm(base, axis=1)
-        sep = 2 * np.degrees(np.arcsin(np.clip(dist / (2 * sod), 0, 1)))
+        draws = 8 * opt.pairs if pair_yield is None else 64 * opt.pairs
+        i = rng.integers(0, n, draws)
+        j = rng.integers(0, n, draws)
+        sep = self._separation(i, j)
         ok = sep >= opt.min_separation_deg
+        if pair_yield is not None:
+            # importance sampling: the pairs at separations whose planes
+            # survive truncation (transaxial: nearly opposite views, whose
+            # steep lines leave through untruncated edges) are the only ones
+            # that inform, and the estimate's noise falls with their number
+            edges, per_pair = pair_yield[:2]
+            w = per_pair[np.clip(np.searchsorted(edges, sep, side="right") - 1, 0, len(per_pair) - 1)]
+            ok &= rng.random(draws) * max(float(per_pair.max()), 1e-12) < w
         pairs = np.unique(np.stack([np.minimum(i, j)[ok], np.maximum(i, j)[ok]], axis=1), axis=0)
         pairs = pairs[rng.permutation(len(pairs))[:opt.pairs]]
         if len(pairs) == 0:
@@ -432,6 +444,26 @@ class RPProblem:
         # lab-frame normals per view are fixed: only the detector moves
         self.mi = np.einsum("pab,pb->pa", self.R[self.vi], self.normals)
         self.mj = np.einsum("pab,pb->pa", self.R[self.vj], self.normals)
+
+    def _separation(self, i, j):
+        """Angle (deg) between the sources of views ``i`` and ``j`` seen from the centre of their circle."""
+        sod = float(np.linalg.norm(self.nominal.source))
+        dist = np.linalg.norm(self.sources[j] - self.sources[i], axis=1)
+        return 2 * np.degrees(np.arcsin(np.clip(dist / (2 * sod), 0, 1)))
+
+    def separation_yield(self, bin_deg: float = 5.0):
+        """(bin edges in deg, used planes per pair, pairs) in bins of the
+        views' separation, for the current plane selection; bins without
+        pairs read 0 planes per pair."""
+        edges = np.arange(0.0, 180.0 + bin_deg, bin_deg)
+        i, j = self.vi, self.vj
+        pair = i * len(self.R) + j
+        first = np.unique(pair, return_index=True)[1]
+        sep_pair = self._separation(i[first], j[first])
+        sep_used = self._separation(i[self.keep], j[self.keep])
+        pairs = np.histogram(sep_pair, edges)[0]
+        used = np.histogram(sep_used, edges)[0]
+        return edges, np.where(pairs > 0, used / np.maximum(pairs, 1), 0.0), pairs
 
     def _lines(self, f: _Frame, m):
         a = m @ f.u
@@ -1136,15 +1168,22 @@ def check_scan(scan) -> np.ndarray:
     return np.asarray(rotary[0].direction, float)
 
 
-def pass2_pairs(opt: RPOptions, selection: dict) -> int:
+def pass2_pairs(opt: RPOptions, selection: dict, pair_yield=None) -> int:
     """View pairs of pass 2: ``opt.pairs``, or more (at most
     ``max_pairs_factor`` times) so that the used planes reach
-    ``min_used_fraction`` of pass 1's candidates."""
+    ``min_used_fraction`` of pass 1's candidates. With ``pair_yield``
+    (:meth:`RPProblem.separation_yield`), the pairs are drawn in proportion
+    to their yield, and each brings sum(n y^2) / sum(n y) planes."""
     used, candidates = selection["used"], selection["candidates"]
     want = opt.min_used_fraction * candidates
     if used >= want:
         return opt.pairs
-    return int(min(np.ceil(opt.pairs * want / max(used, 1)), opt.max_pairs_factor * opt.pairs))
+    if pair_yield is None:
+        per_pair = used / opt.pairs
+    else:
+        _, y, n = pair_yield
+        per_pair = float(np.sum(n * y * y) / max(np.sum(n * y), 1e-12))
+    return int(min(np.ceil(want / max(per_pair, 1e-12)), opt.max_pairs_factor * opt.pairs))
 
 
 def run(scan, opt: RPOptions, progress=None) -> tuple[RPResult, RPProblem]:
@@ -1183,12 +1222,14 @@ def run(scan, opt: RPOptions, progress=None) -> tuple[RPResult, RPProblem]:
     t1 = time.perf_counter()
     p_grid, evals = grid_search(prob1, opt, progress=lambda d, o: progress and progress(len(first) + round(10 * d / o), total))
     fit1, _ = refine(prob1, opt, p_grid)
-    opt2 = replace(opt, pairs=pass2_pairs(opt, prob1.last_selection))
+    sparse = prob1.last_selection["used"] < opt.min_used_fraction * prob1.last_selection["candidates"]
+    pair_yield = prob1.separation_yield() if sparse else None
+    opt2 = replace(opt, pairs=pass2_pairs(opt, prob1.last_selection, pair_yield))
     del prob1, tab1
     t2 = time.perf_counter()
     tab2 = build_tables(images(range(n)), n, misaligned(nominal, fit1.x), opt, progress=prog(len(first) + 10),
                         noise=opt.noise_weights)
-    prob = RPProblem(nominal, T_all, tab2, axis, opt2)
+    prob = RPProblem(nominal, T_all, tab2, axis, opt2, pair_yield)
     t3 = time.perf_counter()
     fit, scale = refine(prob, opt2, fit1.x)
     n_valley = 0
