@@ -284,6 +284,11 @@ def test_small_scan_recovers_shift_and_rotation(small_circular, tmp_path):
     assert set(doc["cost_slices"]) == set(NAMES)
     assert doc["fit"]["cost_final"] < 0.2 * doc["fit"]["cost_nominal"]
     assert doc["fit"]["converged"] and doc["fit"]["grangeat_factors"] == "following"
+    # the reported sigma is the planes' sigma times the calibration factor
+    for n, e in est.items():
+        assert e["sigma_factor"] == rpgrid.SIGMA_FACTORS[n] >= 1.0
+        if e["sigma"] is not None:
+            assert np.isclose(e["sigma"], e["sigma_uncalibrated"] * e["sigma_factor"], rtol=1e-4)
 
 
 def test_pass_two_draws_more_pairs_only_where_most_planes_were_dropped():
