@@ -16,6 +16,8 @@
 
     python benchmarks/bench_rpgrid.py                 # 20 scans, ~20 min on 2 cores
     python benchmarks/bench_rpgrid.py --scans 4 --no-sharpness-search
+    python benchmarks/bench_rpgrid.py --no-fdk --no-sharpness-search --first-seed 200 --uncalibrated-sigma
+                                                      # re-measures rpgrid.SIGMA_FACTORS
     python benchmarks/bench_rpgrid.py --no-fdk --no-sharpness-search --interpolation spline
 """
 

@@ -284,6 +284,7 @@ def test_small_scan_recovers_shift_and_rotation(small_circular, tmp_path):
     assert set(doc["cost_slices"]) == set(NAMES)
     assert doc["fit"]["cost_final"] < 0.2 * doc["fit"]["cost_nominal"]
     assert doc["fit"]["converged"] and doc["fit"]["grangeat_factors"] == "following"
+    assert doc["fit"]["planes"]["pairs_drawn"] == "uniformly"       # no truncation: most planes used
     # the reported sigma is the planes' sigma times the calibration factor
     for n, e in est.items():
         assert e["sigma_factor"] == rpgrid.SIGMA_FACTORS[n] >= 1.0

@@ -35,7 +35,8 @@ How the work is split:
   cost and trade against the others), the 2D grids again, narrower, then a joint Gauss-Newton refinement with the
   analytic derivative of the cost; sigma is the largest of the cost's
   curvature (scaled by the residual level), a leave-views-out jackknife
-  and the spread of disjoint batches of planes.
+  and the spread of disjoint batches of planes, times a factor per
+  parameter calibrated on simulated scans (``SIGMA_FACTORS``).
 """
 
 from __future__ import annotations
@@ -377,9 +378,10 @@ class RPProblem:
 
     def __init__(self, nominal: ConeGeometry, transforms, tables: ViewTables, axis_direction, opt: RPOptions,
                  pair_yield=None):
-        """``pair_yield``: (bin edges in deg, used planes per pair) over the
-        views' separation (:meth:`separation_yield` of an earlier pass); pairs
-        are then drawn in proportion to it instead of uniformly."""
+        """``pair_yield``: :meth:`separation_yield` of an earlier pass (bin
+        edges in deg of the views' separation, used planes per pair, pairs);
+        pairs are then drawn in proportion to the used planes per pair
+        instead of uniformly."""
         self.nominal = nominal
         self.tab = tables
         self.opt = opt
@@ -391,6 +393,7 @@ class RPProblem:
         # B-spline tables hold coefficients, not samples: a bilinear look-up
         # of them would be a different (sharpened) function
         self.coarse_lookup = kernels.lookup_spline if opt.interpolation == "spline" else kernels.lookup
+        self.pairs_by_yield = pair_yield is not None
         self._candidates(pair_yield)
         self.keep = np.ones(len(self.vi), bool)
         self._p_sel = np.zeros(5)
@@ -1182,16 +1185,20 @@ def check_scan(scan) -> np.ndarray:
     return np.asarray(rotary[0].direction, float)
 
 
+def sparse_selection(opt: RPOptions, selection: dict) -> bool:
+    """Whether a pass used under ``min_used_fraction`` of its candidate planes."""
+    return selection["used"] < opt.min_used_fraction * selection["candidates"]
+
+
 def pass2_pairs(opt: RPOptions, selection: dict, pair_yield=None) -> int:
     """View pairs of pass 2: ``opt.pairs``, or more (at most
     ``max_pairs_factor`` times) so that the used planes reach
     ``min_used_fraction`` of pass 1's candidates. With ``pair_yield``
     (:meth:`RPProblem.separation_yield`), the pairs are drawn in proportion
     to their yield, and each brings sum(n y^2) / sum(n y) planes."""
-    used, candidates = selection["used"], selection["candidates"]
-    want = opt.min_used_fraction * candidates
-    if used >= want:
+    if not sparse_selection(opt, selection):
         return opt.pairs
+    used, want = selection["used"], opt.min_used_fraction * selection["candidates"]
     if pair_yield is None:
         per_pair = used / opt.pairs
     else:
@@ -1236,8 +1243,7 @@ def run(scan, opt: RPOptions, progress=None) -> tuple[RPResult, RPProblem]:
     t1 = time.perf_counter()
     p_grid, evals = grid_search(prob1, opt, progress=lambda d, o: progress and progress(len(first) + round(10 * d / o), total))
     fit1, _ = refine(prob1, opt, p_grid)
-    sparse = prob1.last_selection["used"] < opt.min_used_fraction * prob1.last_selection["candidates"]
-    pair_yield = prob1.separation_yield() if sparse else None
+    pair_yield = prob1.separation_yield() if sparse_selection(opt, prob1.last_selection) else None
     opt2 = replace(opt, pairs=pass2_pairs(opt, prob1.last_selection, pair_yield))
     del prob1, tab1
     t2 = time.perf_counter()
@@ -1294,6 +1300,7 @@ def document(res: RPResult, prob: RPProblem, scan, opt: RPOptions) -> dict:
             "cost_reduction": res.cost_nominal / res.cost_final if res.cost_final > 0 else None,
             "chi2_reduced": res.fit.reduced_chi2,
             "planes": {**res.planes, "pairs": prob.n_pairs, "planes_per_pair": opt.planes_per_pair,
+                       "pairs_drawn": "by separation yield" if prob.pairs_by_yield else "uniformly",
                        "min_separation_deg": opt.min_separation_deg},
             "tables": {"views": int(prob.tab.tables.shape[0]), "angles": opt.n_angles,
                        "offsets": int(prob.tab.tables.shape[2]), "ds_mm": prob.tab.ds, "smooth_px": opt.smooth_px,
