@@ -206,14 +206,16 @@ def main(argv=None):
                   "  ".join(f"{n}={m:.3f}" for n, m in zip(NAMES, e.max(axis=0))))
         e = np.array([r["err"] for r in rows])
         s = np.array([r["sigma"] for r in rows])
-        with np.errstate(invalid="ignore", divide="ignore"):
-            pull = np.where(np.isfinite(s), e / s, np.nan)
+
+        def rms_pull(sigma):
+            # scans reporting sigma = inf (undetermined) are left out
+            with np.errstate(invalid="ignore", divide="ignore"):
+                return np.sqrt(np.nanmean(np.where(np.isfinite(s), e / sigma, np.nan) ** 2, 0))
         print("  RMS error (all scans):  " + "  ".join(f"{n}={v:.3f}" for n, v in zip(NAMES, np.sqrt(np.mean(e**2, 0)))))
-        print("  RMS error/sigma:        " + "  ".join(f"{n}={v:.2f}" for n, v in
-                                                        zip(NAMES, np.sqrt(np.nanmean(pull**2, 0)))))
-        s0 = np.array([r["sigma_uncalibrated"] for r in rows])   # scans reporting sigma = inf left out, as above
-        print("  RMS error/uncalibrated sigma (what rpgrid.SIGMA_FACTORS holds, from seeds 200-219): " +
-              "  ".join(f"{n}={v:.2f}" for n, v in zip(NAMES, np.sqrt(np.nanmean(np.where(np.isfinite(s), e / s0, np.nan)**2, 0)))))
+        print("  RMS error/sigma:        " + "  ".join(f"{n}={v:.2f}" for n, v in zip(NAMES, rms_pull(s))))
+        s0 = np.array([r["sigma_uncalibrated"] for r in rows])
+        print("  RMS error/uncalibrated sigma (on seeds 200-219: rpgrid.SIGMA_FACTORS): " +
+              "  ".join(f"{n}={v:.2f}" for n, v in zip(NAMES, rms_pull(s0))))
         print(f"  time per scan (360 views, 256x256, both passes): median {np.median([r['seconds'] for r in rows]):.1f} s, "
               f"max {max(r['seconds'] for r in rows):.1f} s")
         print(f"  memory: Radon tables {rows[0]['tables_mb']:.0f} MB (float32), the stack at float32 would be "

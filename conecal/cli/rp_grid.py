@@ -45,7 +45,8 @@ def _crop(text):
               help=f"Grid half-width of a parameter (px or deg; repeatable). Defaults: "
                    f"{', '.join(f'{k}={v:g}' for k, v in DEFAULT_RANGES.items())}.")
 @click.option("--pairs", type=click.IntRange(10, 100000), default=1500, show_default=True,
-              help="View pairs sampled (pass 2 draws up to 4x more where truncation drops most of their planes).")
+              help="View pairs sampled (where truncation drops most of their planes, pass 2 draws up to 4x more, "
+                   "at the separations whose planes survived).")
 @click.option("--planes-per-pair", type=click.IntRange(4, 1000), default=48, show_default=True)
 @click.option("--angles", type=click.IntRange(36, 4000), default=360, show_default=True,
               help="Angles of each view's Radon table over 180 deg.")

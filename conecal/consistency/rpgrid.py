@@ -79,10 +79,11 @@ class RPOptions:
     kernel_order: int = 2               # 4: the s-derivative's kernel also differentiates cubics exactly
     pairs: int = 1500                   # random view pairs (pass 2: more where truncation drops most planes)
     # Pass 2 draws more pairs (up to max_pairs_factor x) when pass 1 used
-    # under this fraction of its candidate planes: transaxial truncation
-    # keeps only steep lines (~16 % of them), and on so few planes the noise
-    # ripples the cost along v more than its slope (transaxial 115, tables at
-    # the truth, refined from it: v +0.58 px with 1,500 pairs, +0.05 with 4,000)
+    # under this fraction of its candidate planes, and draws them at the
+    # separations where pass 1's planes survived: transaxial truncation keeps
+    # ~16 % of the planes, almost all from nearly opposite views, and drawn
+    # uniformly a few hundred such pairs carried v, which then moved by half
+    # a pixel with the draw (benchmark 16/20 -> 17/20, README "Which planes")
     min_used_fraction: float = 0.5
     max_pairs_factor: float = 4.0
     planes_per_pair: int = 48           # at most, evenly over the fan; its full step is FAN_STEP_DEG
@@ -412,6 +413,8 @@ class RPProblem:
         r_obj = np.hypot(cols * g.pixel_pitch[0], rows * g.pixel_pitch[1]) / 2 / mag
         self.r_obj = r_obj
         S = self.sources
+        # weighted draws are thinned by each separation's yield over the
+        # largest, so they start from 8x the uniform case's draws
         draws = 8 * opt.pairs if pair_yield is None else 64 * opt.pairs
         i = rng.integers(0, n, draws)
         j = rng.integers(0, n, draws)
