@@ -32,11 +32,13 @@ How the work is split:
 - the five parameters are found by 2D grids over (shift u, eta),
   (shift v, theta), (theta, phi) and (shift v, theta) again, joint local
   refinements from a 3x3 pattern of tilts (the tilts barely change the
-  cost and trade against the others), the 2D grids again, narrower, then a joint Gauss-Newton refinement with the
-  analytic derivative of the cost; sigma is the largest of the cost's
-  curvature (scaled by the residual level), a leave-views-out jackknife
-  and the spread of disjoint batches of planes, times a factor per
-  parameter calibrated on simulated scans (``SIGMA_FACTORS``).
+  cost and trade against the others), the 2D grids again, narrower, then a
+  joint Newton refinement on the analytic gradient of the cost and its
+  numerical Hessian (``refine``: Gauss-Newton's J^T J counts the noise's
+  own slope and crept); sigma is the largest of the M-estimator's sandwich
+  from that Hessian, a leave-views-out jackknife, the spread of disjoint
+  batches of planes and of their minima along each range, times a factor
+  per parameter calibrated on simulated scans (``SIGMA_FACTORS``).
 """
 
 from __future__ import annotations
@@ -59,14 +61,14 @@ FAN_STEP_DEG = 0.5     # the planes of a pair's fan: one every half degree about
 
 # Each parameter's sigma is multiplied by this factor: the RMS of error/sigma
 # over 20 simulated scans (seeds 200-219, four kinds) that are not the
-# benchmark's 100-119. The sigma from curvature, jackknife, batches and
+# benchmark's 100-119. The sigma from the sandwich, jackknife, batches and
 # profiles sees the noise of the planes but not the errors common to all of
 # them (the tables' smoothing, cosine weights, truncation edges), which
-# dominate: uncalibrated, the errors were 1.8-3.2 sigma RMS (u 3.15, v 1.81,
-# eta 3.15, theta 2.07, phi 2.50; rounded up). On the benchmark's own seeds
-# 100-119 the calibrated errors are then 0.75-1.25 sigma RMS.
+# dominate: uncalibrated, the errors were 1.9-3.5 sigma RMS (u 3.53, v 2.09,
+# eta 3.52, theta 1.90, phi 3.16; rounded up; measured with the Newton
+# refinement and its Hessian in the sandwich and the jackknife).
 # `python benchmarks/bench_rpgrid.py --no-fdk --no-sharpness-search --first-seed 200 --uncalibrated-sigma`
-SIGMA_FACTORS = {"shift_u_px": 3.2, "shift_v_px": 1.9, "eta_deg": 3.2, "theta_deg": 2.1, "phi_deg": 2.5}
+SIGMA_FACTORS = {"shift_u_px": 3.6, "shift_v_px": 2.1, "eta_deg": 3.6, "theta_deg": 1.9, "phi_deg": 3.2}
 
 DEFAULT_RANGES = {"shift_u_px": 20.0, "shift_v_px": 20.0, "eta_deg": 3.0, "theta_deg": 3.0, "phi_deg": 3.0}
 
@@ -116,13 +118,17 @@ class RPOptions:
     # following; 20-scan benchmark with converged refinements, 1,500 pairs:
     # 15/20 following against 14/20 fixed).
     freeze_grangeat: bool = False
-    # evaluations allowed to each joint refinement: along the shallow
-    # (v, theta) valley it creeps in small steps (20-scan benchmark: up to
-    # ~120; the small 96x96 test scan 91); unconverged, the CLI exits 1
+    # gradient evaluations allowed to each joint refinement (Newton steps on
+    # a numerical Hessian, 11 evaluations each; see refine()); unconverged,
+    # the CLI exits 1
     refine_max_nfev: int = 200
-    # v shifts (px) from which the final refinement is restarted along the
-    # shallow (v, theta) valley; off by default: it costs ~30 s a scan (see valley())
-    valley_probes: tuple = ()
+    # the refinements' Hessian: "numerical" (Newton steps, see refine()) or
+    # "gauss-newton" (J^T J, scipy's trust-region least squares; for
+    # comparison: benchmarks/rpgrid_newton.py)
+    hessian: str = "numerical"
+    # the numerical Hessian's difference steps, in Gauss-Newton standard
+    # deviations along the Gauss-Newton matrix's eigenvectors (core.solve)
+    hessian_step: float = 2.0
     # table look-ups of the refinements and sigmas; the grids, which only
     # need the basin, look up bilinearly (3x faster)
     interpolation: str = "cubic"        # Catmull-Rom; or "spline" (B-spline along s), "linear"
@@ -860,7 +866,7 @@ class RPResult:
     evaluations: int
     planes: dict
     slices: dict
-    sigma_curvature: np.ndarray  # from the cost's curvature, scaled by the residual level
+    sigma_curvature: np.ndarray  # the sandwich H^-1 (sum g g^T) H^-1 of the fit (core.solve)
     sigma_jackknife: np.ndarray  # from leaving out blocks of views
     sigma: np.ndarray            # what is reported: sigma_uncalibrated times opt.sigma_factors
     cost_nominal: float
@@ -980,64 +986,65 @@ def _pair_batches(prob: RPProblem, x, seed: int, batches: int) -> list:
     return [a for a in arrays if len(a[0]) >= 100]
 
 
-def refine(prob: RPProblem, opt: RPOptions, p):
-    """Joint Gauss-Newton refinement from ``p`` (planes chosen again at the
-    start and once more at the answer, as truncated lines move with the
-    geometry). Returns the core's FitResult and the residual scale used."""
+# residuals (in units of their median level) beyond which the robust loss flattens
+F_SCALE = 3.0
+
+
+def _solve(prob: RPProblem, opt: RPOptions, parameters, scale: float, arrays=None, **kw):
+    """The core's robust Newton fit of the residuals (of ``arrays``, or the
+    kept planes) divided by ``scale``."""
     from ..fit.core import solve
 
+    return solve(parameters, lambda x: prob.residuals(x, arrays) / scale, lambda x: prob.jacobian(x, arrays) / scale,
+                 loss=opt.loss, f_scale=F_SCALE, hessian=opt.hessian, hessian_step=opt.hessian_step,
+                 scale_covariance=opt.hessian == "gauss-newton", **kw)
+
+
+def refine(prob: RPProblem, opt: RPOptions, p):
+    """Joint Newton refinement from ``p`` (planes chosen again at the start
+    and once more at the answer, as truncated lines move with the
+    geometry). Returns the core's FitResult and the residual scale used.
+
+    The residuals are mostly noise, and the Jacobian carries the noise's own
+    slope: Gauss-Newton's J^T J overstates the cost's curvature ~40x along
+    the (v, theta) valley, and its steps crept there for hundreds of
+    evaluations (plain scan 116: 200 evaluations, 29 s, unconverged). Newton
+    steps on a numerical Hessian reach the same minimum in ~5 iterations
+    (the same scan: 3.6 s; core.solve's ``hessian``)."""
     prob.select(p)
     r = prob.residuals(p)
     scale = 1.4826 * float(np.median(np.abs(r - np.median(r)))) or 1.0
     fit = None
     for _ in range(2):
-        fit = solve(_parameters(opt, p), lambda x: prob.residuals(x) / scale, lambda x: prob.jacobian(x) / scale,
-                    scale_covariance=True, max_nfev=opt.refine_max_nfev, tol=1e-10, loss=opt.loss, f_scale=3.0)
+        fit = _solve(prob, opt, _parameters(opt, p), scale, max_nfev=opt.refine_max_nfev, tol=1e-10)
         p = fit.x
         prob.select(p)
     return fit, scale
 
 
-def valley(prob: RPProblem, opt: RPOptions, fit, scale, probes=(-6.0, -3.0, 3.0, 6.0)):
-    """Follow the (v, theta) valley that Gauss-Newton creeps along: refine
-    from v shifted by each of ``probes`` (px), fit a parabola to the cost
-    against v over those answers, refine once more from its vertex, and
-    keep the lowest cost. A v shift is balanced by a tilt about u so nearly
-    that the valley floor is shallow, and the solver stops about where it
-    starts on it. Costs are compared on one set of planes (those chosen at
-    the start), so that the choice of planes does not decide."""
-    k = NAMES.index("shift_v_px")
-    runs = [fit]
-    for dv in probes:
-        q = np.array(fit.x, float)
-        q[k] += dv
-        runs.append(refine(prob, opt, q)[0])
-
-    def costs(fits):
-        prob.select(fit.x)
-        return np.array([float(np.sum(prob.residuals(f.x) ** 2)) for f in fits])
-
-    c = costs(runs)
-    v = np.array([f.x[k] for f in runs])
-    a, b, _ = np.polyfit(v, c, 2)
-    if a > 0:
-        q = np.array(runs[int(np.argmin(c))].x, float)
-        q[k] = float(np.clip(-b / (2 * a), v.min(), v.max()))
-        runs.append(refine(prob, opt, q)[0])
-        c = costs(runs)
-    best = runs[int(np.argmin(c))]
-    prob.select(best.x)
-    r = prob.residuals(best.x)
-    s_best = scale if best is fit else (1.4826 * float(np.median(np.abs(r - np.median(r)))) or 1.0)
-    return best, s_best, sum(f.nfev for f in runs[1:])
-
-
 def finish(prob: RPProblem, opt: RPOptions, fit, scale, grid_best, evals, seconds) -> RPResult:
     x = fit.x
-    jack = jackknife_sigma(prob, x, scale)
+    # A parameter on its search bound was not found, whatever its curvature
+    # says; nor are those strongly correlated with it. The jackknife and
+    # the profiles hold it where it is.
+    at_bound = [k for k, n in enumerate(NAMES) if abs(x[k]) >= 1.5 * opt.ranges[n] * 0.999]
+    interior = np.ones(5, bool)
+    interior[at_bound] = False
+    J, psi, w = _plane_gradients(prob, opt, x, scale)
+    A = (J * w[:, None]).T @ J
+    jack = jackknife_sigma(prob, A if fit.hessian is None else fit.hessian, J, psi, interior)
+    # The Gauss-Newton covariance, not the sandwich, for which parameters
+    # follow which: along an undetermined tilt the Hessian is nearly
+    # singular, and its inverse ties every parameter to the tilt (holder
+    # 117, theta on its bound: all five had |correlation| > 0.7; axial 118:
+    # u's profile ran along theta's flat valley, u sigma 4.7 px for an
+    # error of 0.01 px)
+    gn = np.linalg.pinv(A)
+    gn_interior = np.zeros((5, 5))
+    gn_interior[np.ix_(interior, interior)] = np.linalg.pinv(A[np.ix_(interior, interior)])
     batch, spread = batch_sigma(prob, opt, x, scale)
     with _bilinear(prob):
-        lumpy = slice_sigma(prob, opt, x, covariance=np.asarray(fit.covariance, float))
+        lumpy = slice_sigma(prob, opt, x, covariance=gn_interior)
         slices = cost_slices(prob, x, opt)
     raw = np.fmax(np.fmax(np.fmax(np.array(fit.sigma), jack), batch), lumpy)
     sigma = raw * np.array([opt.sigma_factors[n] for n in NAMES])
@@ -1045,10 +1052,8 @@ def finish(prob: RPProblem, opt: RPOptions, fit, scale, grid_best, evals, second
                    slices=slices, sigma_curvature=np.array(fit.sigma), sigma_jackknife=jack,
                    sigma=sigma, cost_nominal=prob.cost(np.zeros(5)), cost_final=prob.cost(x), seconds=seconds,
                    sigma_slices=lumpy, sigma_batches=batch, batch_estimates=spread, sigma_uncalibrated=raw)
-    # A parameter on its search bound was not found, whatever its curvature
-    # says; nor are those strongly correlated with it.
-    at_bound = [k for k, n in enumerate(NAMES) if abs(x[k]) >= 1.5 * opt.ranges[n] * 0.999]
-    corr = np.nan_to_num(np.asarray(fit.correlation, float))
+    with np.errstate(invalid="ignore", divide="ignore"):
+        corr = np.nan_to_num(gn / np.sqrt(np.outer(np.diag(gn), np.diag(gn))))
     lost = set(at_bound)
     for k in at_bound:
         lost.update(int(j) for j in np.flatnonzero(np.abs(corr[k]) > 0.7))
@@ -1067,7 +1072,7 @@ def slice_sigma(prob: RPProblem, opt: RPOptions, x, batches: int = 5, n: int = 4
     informative planes); batches of planes then put their minima far apart.
     Each minimum is refined by a parabola through its grid neighbours.
 
-    With ``covariance`` (of the fit at ``x``) each parameter is also moved
+    With ``covariance`` (Gauss-Newton's at ``x``) each parameter is also moved
     along its profile, the line on which the others follow it as they would
     if refined (column k of the covariance over its diagonal entry), and
     the larger of the two spreads is returned. Theta and v are correlated
@@ -1114,12 +1119,9 @@ def batch_sigma(prob: RPProblem, opt: RPOptions, x, scale: float, batches: int =
     sqrt(number of batches) for their mean, does.
     Returns (sigma, the batch estimates).
     """
-    from ..fit.core import solve
-
     estimates = []
     for arrays in _pair_batches(prob, x, opt.seed + 7, batches):
-        f = solve(_parameters(opt, x, undetermined=False), lambda q, a=arrays: prob.residuals(q, a) / scale,
-                  lambda q, a=arrays: prob.jacobian(q, a) / scale, max_nfev=15, tol=1e-8, loss=opt.loss, f_scale=3.0)
+        f = _solve(prob, opt, _parameters(opt, x, undetermined=False), scale, arrays, max_nfev=60, tol=1e-8)
         estimates.append(f.x)
     if len(estimates) < 3:
         return np.full(5, np.nan), np.zeros((0, 5))
@@ -1127,15 +1129,30 @@ def batch_sigma(prob: RPProblem, opt: RPOptions, x, scale: float, batches: int =
     return est.std(axis=0, ddof=1) / np.sqrt(len(est)), est
 
 
-def jackknife_sigma(prob: RPProblem, x, scale: float, groups: int = 12) -> np.ndarray:
+def _plane_gradients(prob: RPProblem, opt: RPOptions, x, scale: float):
+    """At ``x``, per kept plane: the Jacobian of the residuals divided by
+    ``scale``, rho'(r) r (the plane's share of the robust cost's gradient
+    is its row times this) and rho'(r) (its Gauss-Newton weight)."""
+    from ..fit.core import robust_loss
+
+    r = prob.residuals(x) / scale
+    w = robust_loss(r * r / F_SCALE**2, opt.loss)[1]
+    return prob.jacobian(x) / scale, w * r, w
+
+
+def jackknife_sigma(prob: RPProblem, H, J, psi, free, groups: int = 12) -> np.ndarray:
     """Sigma from leaving out contiguous blocks of views in turn.
 
     The residuals of one view share its noise and its interpolation errors,
     so the curvature, which treats every plane as independent, is
-    optimistic. Each block's estimate is one Gauss-Newton step from ``x``
-    without the planes that touch the block; a block whose planes carry a
-    fraction f of the information moves the estimate with variance
-    var * f / (1 - f).
+    optimistic. Each block's estimate is one Newton step from the fit's
+    answer on the robust cost's gradient without the planes that touch the
+    block (``J``, ``psi``: :func:`_plane_gradients`) and the fit's Hessian
+    ``H`` scaled by the fraction of planes kept, over the parameters
+    ``free`` only. A Gauss-Newton step would take J^T J for the curvature,
+    which the noise's own slope inflates (see refine()). A block whose
+    planes carry a fraction f of the information moves the estimate with
+    variance var * f / (1 - f).
     """
     vi, vj, perm = prob._kept.vi, prob._kept.vj, prob._kept.perm
     vj_res = np.empty_like(vj)
@@ -1143,15 +1160,15 @@ def jackknife_sigma(prob: RPProblem, x, scale: float, groups: int = 12) -> np.nd
     n_views = len(prob.R)
     block_i = vi * groups // n_views
     block_j = vj_res * groups // n_views
-    r = prob.residuals(x) / scale
-    J = prob.jacobian(x) / scale
+    Hf = H[np.ix_(free, free)]
     devs = []
     for g in range(groups):
         keep = (block_i != g) & (block_j != g)
         f = 1.0 - keep.mean()
         if f <= 0 or keep.sum() < 10 * J.shape[1]:
             continue
-        step = np.linalg.lstsq(J[keep], -r[keep], rcond=None)[0]
+        step = np.zeros(J.shape[1])
+        step[free] = -np.linalg.lstsq(Hf * (1.0 - f), (J[keep].T @ psi[keep])[free], rcond=None)[0]
         devs.append(step**2 * (1 - f) / f)
     if not devs:
         return np.full(5, np.nan)
@@ -1255,10 +1272,7 @@ def run(scan, opt: RPOptions, progress=None) -> tuple[RPResult, RPProblem]:
     prob = RPProblem(nominal, T_all, tab2, axis, opt2, pair_yield)
     t3 = time.perf_counter()
     fit, scale = refine(prob, opt2, fit1.x)
-    n_valley = 0
-    if opt.valley_probes:
-        fit, scale, n_valley = valley(prob, opt2, fit, scale, opt.valley_probes)
-    res = finish(prob, opt2, fit, scale, p_grid, evals + fit1.nfev + n_valley,
+    res = finish(prob, opt2, fit, scale, p_grid, evals + fit1.nfev,
                  {"tables_pass1": t1 - t0, "search_pass1": t2 - t1, "tables_pass2": t3 - t2})
     res.seconds["refine_pass2"] = time.perf_counter() - t3
     res.seconds["total"] = time.perf_counter() - t0
@@ -1294,7 +1308,7 @@ def document(res: RPResult, prob: RPProblem, scan, opt: RPOptions) -> dict:
         **g.to_dict(), "axes": axes,
         "misalignment": params,
         "fit": {
-            "method": "redundant plane integrals (Grangeat), grids then Gauss-Newton",
+            "method": "redundant plane integrals (Grangeat), grids then Newton",
             "parameters": params,
             "correlation": {"names": free, "matrix": np.where(np.isfinite(corr), corr, 0.0)},
             "undetermined": undetermined,

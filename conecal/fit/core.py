@@ -3,7 +3,9 @@
 A problem declares named :class:`Parameter` s (value, free or fixed, bounds,
 unit) and supplies whitened residuals ``r(x)`` (residual / sigma) and their
 analytic Jacobian ``J(x)`` over *all* parameters. :func:`solve` runs
-scipy's trust-region least squares on the free ones and returns a
+scipy's trust-region least squares on the free ones (or, for residuals
+dominated by noise, a trust-region Newton method on a numerical Hessian:
+see ``hessian``) and returns a
 :class:`FitResult` with estimates, covariance, sigma, correlations,
 residuals, iterations, robust-loss outliers and the parameters the data
 cannot determine (found from the Jacobian's null space, not guessed).
@@ -57,6 +59,7 @@ class FitResult:
     message: str
     units: list[str] = field(default_factory=list)
     history: list[float] = field(default_factory=list)   # chi^2 at each function evaluation
+    hessian: np.ndarray | None = None   # of the robust cost over free parameters (hessian="numerical" only)
 
     @property
     def reduced_chi2(self) -> float:
@@ -77,7 +80,8 @@ class FitResult:
 def solve(parameters: list[Parameter], residuals: Callable[[np.ndarray], np.ndarray],
           jacobian: Callable[[np.ndarray], np.ndarray], *, loss: str = "linear", f_scale: float = 3.0,
           max_nfev: int = 200, undetermined_factor: float = 10.0, null_tol: float = 1e-7,
-          scale_covariance: bool = False, tol: float = 1e-12) -> FitResult:
+          scale_covariance: bool = False, tol: float = 1e-12, hessian: str = "gauss-newton",
+          hessian_step: float = 2.0) -> FitResult:
     """Minimise ``sum rho(r(x)^2)`` over the free parameters.
 
     ``residuals(x)`` and ``jacobian(x)`` take the full parameter vector.
@@ -87,7 +91,24 @@ def solve(parameters: list[Parameter], residuals: Callable[[np.ndarray], np.ndar
     ('soft_l1', 'huber', 'cauchy'), residuals beyond ``f_scale`` sigmas are
     reported as outliers and the covariance is computed from the inliers.
     ``tol``: scipy's xtol, ftol and gtol.
+
+    ``hessian="numerical"``: Gauss-Newton takes J^T J for the Hessian, which
+    leaves out sum r_i d2r_i. That term is negligible when residuals are
+    small, but not when they are mostly noise whose own slope enters J:
+    then J^T J counts (dn/dx)^2 while the true curvature has it cancelled
+    by n d2n/dx2 (on average, for stationary noise), and Gauss-Newton steps
+    are too short by the ratio (rp-grid's tables: ~40x along the v shift,
+    and trust-region least squares creeps for hundreds of evaluations).
+    This mode minimises the same robust cost by trust-region Newton steps
+    on the Hessian from central differences of its analytic gradient
+    (steps of ``hessian_step`` Gauss-Newton standard deviations along the
+    Gauss-Newton matrix's eigenvectors; 2n gradients per new Hessian), and
+    the covariance is the M-estimator's sandwich H^-1 (sum g_i g_i^T) H^-1
+    of per-residual gradients g_i over all residuals (the loss weights
+    them; no chi^2 scaling).
     """
+    if hessian not in ("gauss-newton", "numerical"):
+        raise ValueError(f"hessian: {hessian!r}, expected 'gauss-newton' or 'numerical'")
     names = [p.name for p in parameters]
     x0 = np.array([p.value for p in parameters], float)
     free = np.array([p.free for p in parameters])
@@ -139,9 +160,12 @@ def solve(parameters: list[Parameter], residuals: Callable[[np.ndarray], np.ndar
             J = jac(xf)
             return J if not len(gauge) else np.vstack([J, stiff * gauge / scale])
 
-        res = least_squares(fun_g, start, jac=jac_g, bounds=(lo, hi) if bounded else (-np.inf, np.inf),
-                            method="trf", x_scale=scale, loss=loss, f_scale=f_scale, max_nfev=max_nfev,
-                            xtol=tol, ftol=tol, gtol=tol)
+        if hessian == "numerical":
+            res = _newton(fun_g, jac_g, start, lo, hi, scale, loss, f_scale, max_nfev, tol, hessian_step)
+        else:
+            res = least_squares(fun_g, start, jac=jac_g, bounds=(lo, hi) if bounded else (-np.inf, np.inf),
+                                method="trf", x_scale=scale, loss=loss, f_scale=f_scale, max_nfev=max_nfev,
+                                xtol=tol, ftol=tol, gtol=tol)
         nfev += res.nfev
         # directions that turn out blind only away from the start: hold them too, and solve again
         late = null_directions(res.x)
@@ -181,8 +205,13 @@ def solve(parameters: list[Parameter], residuals: Callable[[np.ndarray], np.ndar
     keep = s > null_tol * smax
     Vk = Vt[keep].T
     cov_s = (Vk / s[keep] ** 2) @ Vk.T
+    if hessian == "numerical":
+        H = res.hessian
+        Hk = Vk @ np.linalg.pinv(Vk.T @ H @ Vk) @ Vk.T
+        g = (J * scale) * (robust_loss(r * r / f_scale**2, loss)[1] * r)[:, None]
+        cov_s = Hk @ (g.T @ g) @ Hk
     cov = cov_s * np.outer(scale, scale)
-    if scale_covariance and dof > 0:
+    if scale_covariance and dof > 0 and hessian != "numerical":
         cov = cov * (chi2 / dof)
     sig_free = np.sqrt(np.clip(np.diag(cov), 0, None))
     for n in involved:
@@ -200,4 +229,109 @@ def solve(parameters: list[Parameter], residuals: Callable[[np.ndarray], np.ndar
                      residuals=r, cost=float(res.cost), chi2=chi2, dof=dof, nfev=int(res.nfev),
                      njev=int(res.njev or 0), outliers=outliers, undetermined=undetermined,
                      null_combinations=combos, success=bool(res.status > 0), message=str(res.message),
-                     units=[p.unit for p in parameters], history=history[:-1] if len(history) > 1 else history)
+                     units=[p.unit for p in parameters], history=history[:-1] if len(history) > 1 else history,
+                     hessian=res.hessian / np.outer(scale, scale) if hessian == "numerical" else None)
+
+
+def robust_loss(z, loss: str):
+    """scipy's robust losses rho(z) of z = (r / f_scale)^2 and rho'(z)."""
+    if loss == "linear":
+        return z, np.ones_like(z)
+    if loss == "cauchy":
+        return np.log1p(z), 1.0 / (1.0 + z)
+    if loss == "soft_l1":
+        t = np.sqrt(1.0 + z)
+        return 2.0 * (t - 1.0), 1.0 / t
+    if loss == "huber":
+        big = z > 1.0
+        zs = np.where(big, z, 1.0)
+        return np.where(big, 2.0 * np.sqrt(zs) - 1.0, z), np.where(big, 1.0 / np.sqrt(zs), 1.0)
+    raise ValueError(f"loss: {loss!r}, expected linear, cauchy, soft_l1 or huber")
+
+
+def _newton(fun, jac, x0, lo, hi, scale, loss, f_scale, max_nfev, tol, step):
+    """Trust-region Newton minimisation of scipy's robust cost
+    0.5 f^2 sum rho((r / f)^2) within the bounds, in coordinates scaled by
+    ``scale``. The Hessian comes from central differences of the analytic
+    gradient J^T (rho' r) along the eigenvectors of the Gauss-Newton matrix
+    J^T diag(rho') J, each ``step`` of its standard deviations long: a stiff
+    direction (an in-plane rotation) needs steps thousands of times
+    shorter than a shallow one (the valley of v against a tilt), and no
+    one step per parameter suits both. Every gradient counts as one
+    evaluation against ``max_nfev``. Returns what :func:`solve` reads of
+    scipy's result, plus ``hessian`` (scaled coordinates) at the answer."""
+    from types import SimpleNamespace
+
+    f2 = f_scale**2
+    counts = [0]
+
+    def evaluate(z, gn=False):
+        x = x0 + z * scale
+        r = fun(x)
+        counts[0] += 1
+        rho, drho = robust_loss(r * r / f2, loss)
+        J = jac(x) * scale
+        return 0.5 * f2 * float(np.sum(rho)), J.T @ (drho * r), ((J * drho[:, None]).T @ J if gn else None)
+
+    def hess(z, A):
+        w, V = np.linalg.eigh(A)
+        E = V * (step / np.sqrt(np.maximum(w, 1e-12 * w[-1])))
+        G = np.column_stack([evaluate(np.clip(z + e, zlo, zhi))[1] - evaluate(np.clip(z - e, zlo, zhi))[1]
+                             for e in E.T]) / 2.0
+        H = G @ np.linalg.inv(E)
+        return 0.5 * (H + H.T)
+
+    zlo, zhi = (lo - x0) / scale, (hi - x0) / scale
+    z = np.zeros(x0.size)
+    c, g, A = evaluate(z, gn=True)
+    H = hess(z, A)
+    radius, status, message = 2.0, 0, "the maximum number of evaluations was reached"
+    while counts[0] < max_nfev:
+        d = _trust_step(g, H, radius)
+        z_new = np.clip(z + d, zlo, zhi)
+        d = z_new - z
+        predicted = -(g @ d + 0.5 * d @ H @ d)
+        c_new, g_new, A_new = evaluate(z_new, gn=True)
+        ratio = (c - c_new) / predicted if predicted > 0 else -1.0
+        if ratio > 0.1 and c_new < c:
+            small = np.max(np.abs(d)) < tol**0.5 or (c - c_new) < tol * max(abs(c), 1.0)
+            z, c, g = z_new, c_new, g_new
+            if small:
+                status, message = 2, "the step or the cost change fell below tol"
+                break
+            if not 0.8 < ratio < 1.25:
+                # the quadratic model predicted the step's gain: keep its Hessian
+                H = hess(z, A_new)
+            if ratio > 0.75 and np.linalg.norm(d) > 0.9 * radius:
+                radius *= 2.0
+        else:
+            radius = 0.25 * np.linalg.norm(d)
+            if radius < tol**0.5:
+                status, message = 2, "the trust region shrank below tol: no step lowers the cost"
+                break
+    return SimpleNamespace(x=x0 + z * scale, cost=c, nfev=counts[0], njev=counts[0], status=status,
+                           message=message, hessian=H)
+
+
+def _trust_step(g, H, radius):
+    """The step d minimising g.d + d.H.d/2 with |d| <= radius (H symmetric,
+    possibly indefinite): -(H + lam I)^-1 g with the smallest lam >= 0
+    that keeps the step inside, found by bisection on the eigenvalues."""
+    w, Q = np.linalg.eigh(H)
+    gq = Q.T @ g
+
+    def step(lam):
+        return -Q @ (gq / np.maximum(w + lam, 1e-300))
+
+    lam_lo = max(0.0, -w[0] + 1e-12 * max(abs(w[-1]), 1.0))
+    d = step(lam_lo)
+    if np.linalg.norm(d) <= radius:
+        return d
+    lam_hi = lam_lo + np.linalg.norm(g) / radius + abs(w[-1])
+    for _ in range(60):
+        lam = 0.5 * (lam_lo + lam_hi)
+        if np.linalg.norm(step(lam)) > radius:
+            lam_lo = lam
+        else:
+            lam_hi = lam
+    return step(lam_hi)
