@@ -299,8 +299,9 @@ def _newton(fun, jac, x0, lo, hi, scale, loss, f_scale, max_nfev, tol, step):
             if small:
                 status, message = 2, "the step or the cost change fell below tol"
                 break
+            # a new Hessian only where the quadratic model mispredicted the
+            # step's gain (2n gradients each)
             if not 0.8 < ratio < 1.25:
-                # the quadratic model predicted the step's gain: keep its Hessian
                 H = hess(z, A_new)
             if ratio > 0.75 and np.linalg.norm(d) > 0.9 * radius:
                 radius *= 2.0
@@ -316,7 +317,8 @@ def _newton(fun, jac, x0, lo, hi, scale, loss, f_scale, max_nfev, tol, step):
 def _trust_step(g, H, radius):
     """The step d minimising g.d + d.H.d/2 with |d| <= radius (H symmetric,
     possibly indefinite): -(H + lam I)^-1 g with the smallest lam >= 0
-    that keeps the step inside, found by bisection on the eigenvalues."""
+    (and above -min eigenvalue) that keeps the step inside, found by
+    bisection on lam in H's eigenbasis."""
     w, Q = np.linalg.eigh(H)
     gq = Q.T @ g
 
