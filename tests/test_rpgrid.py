@@ -212,6 +212,13 @@ def test_noise_weighted_residuals_and_their_jacobian(small_circular, fan_sigma_d
     with rpgrid._bilinear(prob):
         assert not prob.noise_weighted
     J = prob.jacobian(p)
+    # the residuals the Jacobian computed on the way are the same numbers,
+    # and reused only at the same point, planes and look-up
+    r = prob.residuals(p)
+    assert np.array_equal(r, prob._residuals(p, prob._kept))
+    with rpgrid._bilinear(prob):
+        rb = prob.residuals(p)
+        assert np.array_equal(rb, prob._residuals(p, prob._kept)) and not np.allclose(rb, r)
     for k in range(5):
         Jn = _central_difference(prob, p, k, 1e-5)
         assert np.linalg.norm(J[:, k] - Jn) < 1e-3 * np.linalg.norm(Jn) + 1e-9, NAMES[k]

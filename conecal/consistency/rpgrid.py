@@ -817,8 +817,25 @@ class RPProblem:
         r, e = self._residuals(p, self._kept if arrays is None else arrays, energy=True)
         return float(np.sum(r * r)) / e if e > 0 else np.inf
 
+    def _residuals_key(self, p, A):
+        # the planes by identity (held, so that no new arrays take their id)
+        return np.asarray(p, float).tobytes(), A, self.lookup, self.coarse
+
     def residuals(self, p, arrays=None) -> np.ndarray:
-        return self._residuals(p, self._kept if arrays is None else arrays)
+        """Residuals at ``p``; after :meth:`jacobian` at the same ``p`` and
+        planes, the ones it computed on the way (the Newton refinement asks
+        for both at every point: core.solve evaluates the Jacobian first)."""
+        A = self._kept if arrays is None else arrays
+        key, r = self._last_residuals
+        if key is not None and self._same_key(key, self._residuals_key(p, A)):
+            return r.copy()
+        return self._residuals(p, A)
+
+    _last_residuals = (None, None)
+
+    @staticmethod
+    def _same_key(a, b):
+        return a[0] == b[0] and a[1] is b[1] and a[2] is b[2] and a[3] == b[3]
 
     def jacobian(self, p, arrays=None) -> np.ndarray:
         A = self._kept if arrays is None else arrays
@@ -828,16 +845,17 @@ class RPProblem:
         d, J, Vi, JVi = self._look(f, A.vi, A.mi, A.Fi, dfs, variance=weighted)
         b, Jj, Vj, JVj = self._look(f, A.vj, A.mj, A.Fj, dfs, variance=weighted)
         J[A.perm] -= Jj
-        if weighted:
-            # r = d / sqrt(S): dr = dd / sqrt(S) - d dS / (2 S^1.5)
-            d[A.perm] -= b
-            if A.fan is not None:
-                d = A.fan @ d
-            S, JS = self._plane_variance(A, Vi, Vj, JVi, JVj)
+        # the residuals, in the same operations as _residuals
+        d[A.perm] -= b
         if A.fan is not None:
+            d = A.fan @ d
             J = A.fan @ J
         if weighted:
+            # r = d / sqrt(S): dr = dd / sqrt(S) - d dS / (2 S^1.5)
+            S, JS = self._plane_variance(A, Vi, Vj, JVi, JVj)
             J = J / np.sqrt(S)[:, None] - (0.5 * d / S**1.5)[:, None] * JS
+            d = d / np.sqrt(S)
+        self._last_residuals = (self._residuals_key(p, A), d * A.weight)
         return J * np.reshape(A.weight, (-1, 1))
 
     def subset(self, n: int, seed: int = 0):

@@ -267,10 +267,11 @@ def _newton(fun, jac, x0, lo, hi, scale, loss, f_scale, max_nfev, tol, step):
 
     def evaluate(z, gn=False):
         x = x0 + z * scale
+        # the Jacobian first: a problem may compute the residuals with it
+        J = jac(x) * scale
         r = fun(x)
         counts[0] += 1
         rho, drho = robust_loss(r * r / f2, loss)
-        J = jac(x) * scale
         return 0.5 * f2 * float(np.sum(rho)), J.T @ (drho * r), ((J * drho[:, None]).T @ J if gn else None)
 
     def hess(z, A):
