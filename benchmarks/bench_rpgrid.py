@@ -20,7 +20,7 @@
     python benchmarks/bench_rpgrid.py --scans 4 --no-sharpness-search
     python benchmarks/bench_rpgrid.py --no-fdk --no-sharpness-search --first-seed 200 --uncalibrated-sigma
                                                       # re-measures rpgrid.SIGMA_FACTORS
-    python benchmarks/bench_rpgrid.py --no-fdk --no-sharpness-search --interpolation spline
+    python benchmarks/bench_rpgrid.py --no-fdk --no-sharpness-search --interpolation cubic
 """
 
 from __future__ import annotations

@@ -412,3 +412,39 @@ def test_whole_range_scans_of_spline_tables_look_up_the_spline_unweighted(small_
     assert probs["spline"].lookup is kernels.lookup_spline and probs["spline"].noise_weighted
     # the same function looked up two ways: 1.2 % apart (bilinear on the coefficients: 2.6 %)
     assert abs(c_spline - c_linear) < 0.02 * c_linear
+
+
+def test_restarts_along_v_leave_a_local_minimum_for_a_lower_one():
+    """A cost along v with ripples 0.45 px apart over a shallow bowl at
+    v = 0.1 (what transaxial truncation leaves): refined from 0.62 it stops
+    in the ripple at ~0.55; the restarts at v -0.5 and -0.25 find the bowl's
+    minimum, and from there the answer stays where it is."""
+    target = np.array([1.0, 0.1, 0.02, 0.3, -0.2])
+    period = 0.45
+    selections = []
+
+    class Prob:
+        def select(self, p):
+            selections.append(np.array(p))
+
+        def residuals(self, q, arrays=None):
+            d = np.asarray(q) - target
+            return np.concatenate([10 * d[[0, 2, 3, 4]], [0.3 * d[1], 0.6 * np.sin(np.pi * d[1] / period)]])
+
+        def jacobian(self, q, arrays=None):
+            d = np.asarray(q) - target
+            J = np.zeros((6, 5))
+            J[[0, 1, 2, 3], [0, 2, 3, 4]] = 10.0
+            J[4, 1] = 0.3
+            J[5, 1] = 0.6 * np.pi / period * np.cos(np.pi * d[1] / period)
+            return J
+
+    prob, opt = Prob(), rpgrid.RPOptions()
+    fit, scale = rpgrid.refine(prob, opt, target + [0, 0.52, 0, 0, 0])
+    assert abs(fit.x[1] - target[1] - period) < 0.05            # the neighbouring ripple
+    new, scale, evals = rpgrid.restart_along_v(prob, opt, fit, scale)
+    assert evals > 0 and new.success
+    assert np.allclose(new.x, target, atol=1e-4)
+    again, _, _ = rpgrid.restart_along_v(prob, opt, new, scale)
+    assert again is new
+    assert rpgrid.restart_along_v(prob, rpgrid.RPOptions(v_restarts_px=()), fit, scale)[0] is fit

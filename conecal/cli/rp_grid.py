@@ -59,8 +59,8 @@ def _crop(text):
               help="4: a derivative kernel that is also exact on cubics (less smoothing bias, 1.85x the noise).")
 @click.option("--fan-sigma-deg", type=click.FloatRange(0.0, 10.0), default=0.0, show_default=True,
               help="Smoothing along each pair's fan of planes (deg; 0: off). Use with --planes-per-pair 144.")
-@click.option("--interpolation", type=click.Choice(["spline", "cubic", "linear"]), default="cubic", show_default=True,
-              help="Table look-ups of the refinements: cubic B-spline along the offset (spline) or Catmull-Rom (cubic).")
+@click.option("--interpolation", type=click.Choice(["spline", "cubic", "linear"]), default="spline", show_default=True,
+              help="Table look-ups: cubic B-spline along the offset (spline) or Catmull-Rom (cubic).")
 @click.option("--seed", type=int, default=0, show_default=True, help="Seed of the plane sample.")
 def command(scan, output, ranges, pairs, planes_per_pair, angles, crop, keep_truncated, smooth_px, kernel_order,
             fan_sigma_deg, interpolation, seed):
