@@ -292,6 +292,10 @@ def test_small_scan_recovers_shift_and_rotation(small_circular, tmp_path):
     assert doc["fit"]["cost_final"] < 0.2 * doc["fit"]["cost_nominal"]
     assert doc["fit"]["converged"] and doc["fit"]["grangeat_factors"] == "following"
     assert doc["fit"]["planes"]["pairs_drawn"] == "uniformly"       # no truncation: most planes used
+    restarts = doc["fit"]["restarts_along_v"]
+    assert restarts["offsets_px"] == list(rpgrid.RPOptions().v_restarts_px)
+    assert restarts["moved_from"] is None or set(restarts["moved_from"]) == set(NAMES)
+    assert doc["fit"]["tables"]["interpolation"] == "spline"
     # the reported sigma is the planes' sigma times the calibration factor
     for n, e in est.items():
         assert e["sigma_factor"] == rpgrid.SIGMA_FACTORS[n] >= 1.0

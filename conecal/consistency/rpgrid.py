@@ -900,6 +900,7 @@ class RPResult:
     sigma_batches: np.ndarray = None  # from disjoint batches of view pairs refined alone
     batch_estimates: np.ndarray = None
     at_bound: list = field(default_factory=list)
+    restarted_from: np.ndarray | None = None   # pass 2's first answer, where a restart along v found a lower minimum
     sigma_uncalibrated: np.ndarray = None   # the largest of curvature, jackknife, batches and slices
 
 
@@ -1325,12 +1326,14 @@ def run(scan, opt: RPOptions, progress=None) -> tuple[RPResult, RPProblem]:
     prob = RPProblem(nominal, T_all, tab2, axis, opt2, pair_yield)
     t3 = time.perf_counter()
     fit, scale = refine(prob, opt2, fit1.x)
+    before = fit
     fit, scale, restarts = restart_along_v(prob, opt2, fit, scale)
     res = finish(prob, opt2, fit, scale, p_grid, evals + fit1.nfev + restarts,
                  {"tables_pass1": t1 - t0, "search_pass1": t2 - t1, "tables_pass2": t3 - t2})
     res.seconds["refine_pass2"] = time.perf_counter() - t3
     res.seconds["total"] = time.perf_counter() - t0
     res.pass1 = fit1.x
+    res.restarted_from = None if fit is before else np.array(before.x)
     if progress:
         progress(total, total)
     return res, prob
@@ -1383,6 +1386,11 @@ def document(res: RPResult, prob: RPProblem, scan, opt: RPOptions) -> dict:
             "seconds": res.seconds,
             "converged": bool(res.fit.success),
             "grangeat_factors": "fixed" if opt.freeze_grangeat else "following",
+            # a lower minimum found by a restart means the cost has several
+            # along v (README "Restarts along v")
+            "restarts_along_v": {"offsets_px": list(opt.v_restarts_px),
+                                 "moved_from": None if res.restarted_from is None
+                                 else dict(zip(NAMES, map(float, res.restarted_from)))},
         },
         "cost_slices": res.slices,
         "units": {"length": "mm", "angle": "deg", "shift": "px of the nominal detector"},
