@@ -1050,7 +1050,8 @@ def restart_along_v(prob: RPProblem, opt: RPOptions, fit, scale: float):
     """The lowest of the minima reached from the refinement's answer with v
     moved by ``opt.v_restarts_px``, all on the planes chosen at the answer;
     if one is lower than the answer's, the refinement runs again from it.
-    Returns (fit, scale, restarts' evaluations).
+    Returns (fit, scale, evaluations spent here: the answer's own minimum
+    on those planes, the restarts and any new refinement).
 
     Where truncation leaves few planes that see v (a transaxially truncated
     object: only near-vertical lines avoid both side borders, and they
