@@ -1190,9 +1190,11 @@ def _plane_gradients(prob: RPProblem, opt: RPOptions, x, scale: float):
     is its row times this) and rho'(r) (its Gauss-Newton weight)."""
     from ..fit.core import robust_loss
 
+    # the Jacobian first: the residuals then come from its pass
+    J = prob.jacobian(x) / scale
     r = prob.residuals(x) / scale
     w = robust_loss(r * r / F_SCALE**2, opt.loss)[1]
-    return prob.jacobian(x) / scale, w * r, w
+    return J, w * r, w
 
 
 def jackknife_sigma(prob: RPProblem, H, J, psi, free, groups: int = 12) -> np.ndarray:

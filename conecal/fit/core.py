@@ -265,14 +265,19 @@ def _newton(fun, jac, x0, lo, hi, scale, loss, f_scale, max_nfev, tol, step):
     f2 = f_scale**2
     counts = [0]
 
-    def evaluate(z, gn=False):
+    def evaluate(z):
+        """Cost, gradient, and (J, rho') for the Gauss-Newton matrix should a new Hessian be needed there."""
         x = x0 + z * scale
         # the Jacobian first: a problem may compute the residuals with it
         J = jac(x) * scale
         r = fun(x)
         counts[0] += 1
         rho, drho = robust_loss(r * r / f2, loss)
-        return 0.5 * f2 * float(np.sum(rho)), J.T @ (drho * r), ((J * drho[:, None]).T @ J if gn else None)
+        return 0.5 * f2 * float(np.sum(rho)), J.T @ (drho * r), (J, drho)
+
+    def gauss_newton(J_drho):
+        J, drho = J_drho
+        return (J * drho[:, None]).T @ J
 
     def hess(z, A):
         w, V = np.linalg.eigh(A)
@@ -284,15 +289,15 @@ def _newton(fun, jac, x0, lo, hi, scale, loss, f_scale, max_nfev, tol, step):
 
     zlo, zhi = (lo - x0) / scale, (hi - x0) / scale
     z = np.zeros(x0.size)
-    c, g, A = evaluate(z, gn=True)
-    H = hess(z, A)
+    c, g, J_drho = evaluate(z)
+    H = hess(z, gauss_newton(J_drho))
     radius, status, message = 2.0, 0, "the maximum number of evaluations was reached"
     while counts[0] < max_nfev:
         d = _trust_step(g, H, radius)
         z_new = np.clip(z + d, zlo, zhi)
         d = z_new - z
         predicted = -(g @ d + 0.5 * d @ H @ d)
-        c_new, g_new, A_new = evaluate(z_new, gn=True)
+        c_new, g_new, J_drho = evaluate(z_new)
         ratio = (c - c_new) / predicted if predicted > 0 else -1.0
         if ratio > 0.1 and c_new < c:
             small = np.max(np.abs(d)) < tol**0.5 or (c - c_new) < tol * max(abs(c), 1.0)
@@ -303,7 +308,7 @@ def _newton(fun, jac, x0, lo, hi, scale, loss, f_scale, max_nfev, tol, step):
             # a new Hessian only where the quadratic model mispredicted the
             # step's gain (2n gradients each)
             if not 0.8 < ratio < 1.25:
-                H = hess(z, A_new)
+                H = hess(z, gauss_newton(J_drho))
             if ratio > 0.75 and np.linalg.norm(d) > 0.9 * radius:
                 radius *= 2.0
         else:
