@@ -23,3 +23,13 @@ class FormatVersionError(InputError):
 
 class FitError(ConecalError, RuntimeError):
     """A fit that could not produce a trustworthy result."""
+
+
+class Terminated(KeyboardInterrupt):
+    """SIGTERM or SIGHUP, raised in the main thread so that the same clean-up
+    as for Ctrl-C runs (temporary files removed, workers ended); the CLI
+    exits 128 + ``signum``."""
+
+    def __init__(self, signum: int):
+        super().__init__(signum)
+        self.signum = signum

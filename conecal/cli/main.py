@@ -1,17 +1,31 @@
 """The ``conecal`` command: a group of thin subcommands.
 
 Errors are translated to exit codes here and only here: bad usage or input
--> 2, a failed fit or other run-time failure -> 1, interrupted -> 130.
+-> 2, a failed fit or other run-time failure -> 1, interrupted -> 130,
+terminated (SIGTERM, SIGHUP) -> 128 + the signal's number.
 """
 
 from __future__ import annotations
 
+import signal
 import sys
 
 import click
 
 from .. import __version__
-from ..errors import FitError, InputError
+from ..errors import FitError, InputError, Terminated
+
+
+def _raise_terminated(signum, _frame):
+    raise Terminated(signum)
+
+
+def _terminate_like_interrupt() -> None:
+    """SIGTERM (``kill PID``, ``Popen.terminate()``, a batch scheduler) and
+    SIGHUP (a closed terminal) end conecal the way Ctrl-C does."""
+    for sig in (signal.SIGTERM, getattr(signal, "SIGHUP", None)):
+        if sig is not None:
+            signal.signal(sig, _raise_terminated)
 
 
 class ConecalGroup(click.Group):
@@ -24,6 +38,9 @@ class ConecalGroup(click.Group):
         except FitError as exc:
             click.echo(f"Fit failed: {exc}", err=True)
             sys.exit(1)
+        except Terminated as exc:
+            click.echo(f"Terminated by {signal.Signals(exc.signum).name}; no output was written.", err=True)
+            sys.exit(128 + exc.signum)
         except KeyboardInterrupt:
             click.echo("Interrupted; no output was written.", err=True)
             sys.exit(130)
@@ -50,6 +67,7 @@ def cli(ctx, verbose, quiet):
     """
     ctx.ensure_object(dict)
     ctx.obj["verbosity"] = -1 if quiet else verbose
+    _terminate_like_interrupt()
 
 
 def _register():

@@ -50,7 +50,10 @@ def _system_of(scan_dir) -> dict:
 @click.option("--same-system-as", "same_as", type=click.Path(file_okay=False), default=None,
               help="A simulated scan directory whose true source, detector and nominal set-up to reuse "
                    "(linear and rotation only): two scans of one system.")
-@click.option("--overwrite", is_flag=True, help="Replace OUT if it exists.")
+@click.option("--overwrite", is_flag=True,
+              help="Replace OUT if it is a scan directory that conecal simulate wrote (or empty). A directory "
+                   "holding anything else, a link, the current directory or one of its parents is refused "
+                   "(exit 2) and nothing is touched.")
 def command(kind, out, seed, frames, photons, blur_px, values, effects, dense_holder, trajectory, schedule, truncation,
             misalignment, same_as, overwrite):
     """Simulate a scan of KIND (linear | rotation | robot | circular) into OUT.

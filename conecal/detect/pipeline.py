@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import multiprocessing as mp
-from concurrent.futures import ProcessPoolExecutor
+import signal
 from typing import Callable
 
 import numpy as np
@@ -21,6 +21,20 @@ _WORKER = None
 
 def _run_worker(k):
     return _WORKER(k)
+
+
+def _worker_init() -> None:
+    """A worker ends with the parent: SIGTERM back to its default (the parent's
+    handler raises for clean-up it alone must do), Ctrl-C left to the parent,
+    and on Linux the kernel sends SIGTERM if the parent dies first."""
+    signal.signal(signal.SIGTERM, signal.SIG_DFL)
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    try:
+        import ctypes
+
+        ctypes.CDLL(None, use_errno=True).prctl(1, signal.SIGTERM)  # PR_SET_PDEATHSIG
+    except (OSError, AttributeError):
+        pass
 
 
 def options_for_scan(scan: Scan, *, threshold: float = 10.0, blur_px: float = 1.0,
@@ -103,13 +117,18 @@ def detect_scan(scan: Scan, opt: DetectOptions, *, workers: int = 2, lag: float 
         _WORKER = one
         kernels.warm_up()
         ctx = mp.get_context("fork")
-        with ProcessPoolExecutor(max_workers=workers, mp_context=ctx) as ex:
-            chunk = max(1, min(16, len(frames_idx) // (4 * workers)))
-            for n, res in enumerate(ex.map(_run_worker, frames_idx, chunksize=chunk), 1):
-                results.append(res)
-                if progress:
-                    progress(n, len(frames_idx))
-        _WORKER = None
+        # Pool, not ProcessPoolExecutor: leaving the block on any exception
+        # (an error, Ctrl-C, SIGTERM) terminates the workers instead of
+        # waiting for every queued frame.
+        try:
+            with ctx.Pool(workers, initializer=_worker_init) as pool:
+                chunk = max(1, min(16, len(frames_idx) // (4 * workers)))
+                for n, res in enumerate(pool.imap(_run_worker, frames_idx, chunksize=chunk), 1):
+                    results.append(res)
+                    if progress:
+                        progress(n, len(frames_idx))
+        finally:
+            _WORKER = None
     else:
         for n, k in enumerate(frames_idx, 1):
             results.append(one(k))

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import csv
 import io
+import json
 import os
 import shutil
 import tempfile
@@ -91,8 +92,10 @@ def write_scan(sc: Scenario, out: str | Path, *, seed: int = 0, values: str = "a
     ``scan.yaml``, ``log.csv``, ``projections.tif``, ``truth.json`` (and
     ``phantom.csv``, ``flat.tif``, ``dark.tif`` where needed)."""
     out = Path(out)
-    if out.exists() and not overwrite:
-        raise InputError(f"{out}: already exists (use --overwrite to replace it)")
+    if out.exists() or out.is_symlink():
+        if not overwrite:
+            raise InputError(f"{out}: already exists (use --overwrite to replace it)")
+        check_replaceable(out)
     if values not in ("attenuation", "transmission", "raw"):
         raise InputError(f"--values: must be attenuation, transmission or raw, got {values!r}")
     if values == "raw" and sc.photons <= 0:
@@ -145,10 +148,76 @@ def write_scan(sc: Scenario, out: str | Path, *, seed: int = 0, values: str = "a
                  "frames": frames_truth, **sc.truth_extra}
         (tmp / "truth.json").write_text(dumps(truth), encoding="utf-8")
         os.chmod(tmp, 0o777 & ~_umask())
-        if out.exists():
-            shutil.rmtree(out)
-        os.replace(tmp, out)
+        _swap_into_place(tmp, out)
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
         raise
     return out
+
+
+# every name write_scan can put in a scan directory
+WRITTEN_NAMES = frozenset({"scan.yaml", "log.csv", "projections.tif", "truth.json", "phantom.csv", "flat.tif",
+                           "dark.tif"})
+
+
+def check_replaceable(out: Path) -> None:
+    """Refuse (InputError) to replace ``out`` unless conecal itself wrote it.
+
+    A directory counts as conecal's when it is empty, or when it holds only
+    regular files with the names ``write_scan`` writes and a ``truth.json``
+    whose ``format`` is ``conecal-truth/...`` and whose ``software`` names
+    conecal. The current directory and its ancestors are never replaced,
+    and neither is a symbolic link or a file. Nothing is touched here.
+    """
+    if out.is_symlink():
+        raise InputError(f"{out}: is a symbolic link; --overwrite replaces only a scan directory that conecal wrote")
+    if not out.is_dir():
+        raise InputError(f"{out}: exists and is not a directory; --overwrite replaces only a scan directory "
+                         "that conecal wrote")
+    real = out.resolve()
+    cwd = Path.cwd().resolve()
+    if real == cwd or real in cwd.parents:
+        raise InputError(f"{out}: is the current directory or one of its parents; --overwrite never replaces it")
+    try:
+        entries = sorted(os.scandir(out), key=lambda e: e.name)
+    except OSError as exc:
+        raise InputError(f"{out}: cannot be read ({exc.strerror}); nothing was replaced") from None
+    if not entries:
+        return
+    foreign = [e.name + ("/" if e.is_dir(follow_symlinks=False) else "") for e in entries
+               if e.name not in WRITTEN_NAMES or not e.is_file(follow_symlinks=False)]
+    if foreign:
+        shown = ", ".join(foreign[:5]) + (f" and {len(foreign) - 5} more" if len(foreign) > 5 else "")
+        raise InputError(f"{out}: holds files that conecal did not write ({shown}); --overwrite replaces only a "
+                         "scan directory that conecal simulate wrote, so nothing was touched")
+    if not _written_by_conecal(out / "truth.json"):
+        raise InputError(f"{out}: its truth.json is missing or not conecal's (key 'software'); --overwrite replaces "
+                         "only a scan directory that conecal simulate wrote, so nothing was touched")
+
+
+def _written_by_conecal(truth: Path) -> bool:
+    try:
+        doc = json.loads(truth.read_text(encoding="utf-8"))
+    except (OSError, ValueError):
+        return False
+    return (isinstance(doc, dict) and str(doc.get("format", "")).startswith("conecal-truth/")
+            and str(doc.get("software", "")).startswith("conecal"))
+
+
+def _swap_into_place(tmp: Path, out: Path) -> None:
+    """Rename the finished directory ``tmp`` to ``out``; an old ``out`` is
+    first renamed aside and removed only once the new one is in place, so
+    that at every instant one complete scan directory stands at ``out``
+    or beside it."""
+    if not out.exists():
+        os.replace(tmp, out)
+        return
+    old = Path(tempfile.mkdtemp(prefix=f".{out.name}.old.", dir=out.parent))
+    os.rmdir(old)
+    os.rename(out, old)
+    try:
+        os.replace(tmp, out)
+    except BaseException:
+        os.rename(old, out)
+        raise
+    shutil.rmtree(old, ignore_errors=True)
