@@ -51,7 +51,7 @@ def command(result, scan, output, alpha, image_level, image_frames):
     """
     from .. import __version__
     from ..diagnose import ResultModel, diagnose, diagnose_image, merge_levels
-    from ..diagnose.image import scene_chi2
+    from ..diagnose.image_select import scene_chi2
     from ..jsonio import read_json, rounded, write_json
     from ..scan import load_scan
 

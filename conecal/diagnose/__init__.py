@@ -1,6 +1,6 @@
 """``diagnose``: find the physics a fit left out, model it, and show the fit improve."""
 
-from .image import diagnose_image
+from .image_select import diagnose_image
 from .levels import merge_levels
 from .model import ResultModel
 from .select import candidates, diagnose

@@ -34,9 +34,8 @@ from dataclasses import dataclass
 
 import cv2
 import numpy as np
-from scipy.optimize import least_squares
 
-from ..effects.imaging import BeamHardening, Blur, DetectorLag, Scatter, beam_hardened, unhardened
+from ..effects.imaging import beam_hardened, unhardened
 from ..simulate.render import Sphere, render_line_integrals
 
 KERNEL_RADIUS = 6          # px; the blur kernel's half width (sigma up to 2 px)
@@ -72,6 +71,16 @@ def _kernel(sigma: float) -> np.ndarray:
     else:
         k = np.exp(-0.5 * (x / sigma) ** 2)
     return k / k.sum()
+
+
+def _quantum(A, mask) -> float:
+    """The smallest positive step between the values recorded in a patch's
+    background: 0 for continuous values, the quantisation step of an 8-bit
+    or JPEG-compressed image."""
+    v = np.unique(A[mask])
+    d = np.diff(v)
+    d = d[d > 0]
+    return float(d.min()) if d.size else np.inf
 
 
 def _background(img, mask):
@@ -111,12 +120,15 @@ class ImageModel:
         self.stated_blur = None if spec is None or spec.blur_px is None else float(spec.blur_px)
         self.patches: list[Patch] = []
         self.skipped: dict[str, int] = {}
+        self._levels: list[float] = []      # per patch: the smallest step between recorded values
         self._crops: dict = {}      # box -> (cropped detector, its warp)
         self._start_gradients: dict = {}   # (frame, id, h) -> (lab centre, own_gradient there)
         self._build(max_frames, progress)
         if not self.patches:
             raise ValueError("no marker patch is usable at the image level")
         self.sigma_air = float(np.median([p.sigma_air for p in self.patches]))
+        self.value_step = float(np.median(self._levels)) if self._levels else 0.0
+        self.stored_dtype = str(scan.stack.read_raw(int(self.patches[0].frame)).dtype)
 
     # ----------------------------------------------------------- setup
     def _radii(self) -> dict:
@@ -211,6 +223,10 @@ class ImageModel:
                     self.skipped["no background around it"] = self.skipped.get("no background around it", 0) + 1
                     continue
                 A = rec[sl]
+                if not np.isfinite(A).all() or (prev_rec is not None and not np.isfinite(prev_rec[sl]).all()):
+                    self.skipped["non-finite pixels"] = self.skipped.get("non-finite pixels", 0) + 1
+                    continue
+                self._levels.append(_quantum(A, bg_mask))
                 b = _background(A, bg_mask)
                 resid = (A - b)[bg_mask]
                 sig = max(1.4826 * np.median(np.abs(resid - np.median(resid))), SIGMA_FLOOR)
@@ -385,255 +401,3 @@ class _CropWarp:
 
 
 # ----------------------------------------------------------------- candidates
-@dataclass(frozen=True)
-class ImageCandidate:
-    label: str
-    free: tuple               # names in ImageModel.PARAMS freed by this candidate
-    describe: object          # (values, sigmas, model) -> plain words
-    build: object             # (values, model) -> Effect
-    size: object = None       # values -> the effect's size in the units of ``floor``
-    floor: float = 0.0        # the smallest size claimed (see FLOORS)
-
-    @property
-    def k(self) -> int:
-        return len(self.free)
-
-    def big_enough(self, v) -> bool:
-        return self.size is None or abs(float(self.size(np.asarray(v, float)))) >= self.floor
-
-
-# The smallest size the image level claims, about twice the largest that
-# clean simulated scans show. The renderer reproduces the simulator's
-# shadows only to a few parts in 1e4 of the noise-weighted chi^2, and with
-# 1e6 pixels that alone "beats the noise": clean arm scans read blur
-# 0.05 px (in quadrature) below the stated one, lag 0.03 %, beta 0.0025,
-# scatter 0.3 %. None of these matter to a geometry.
-FLOORS = {"blur": 0.1, "beam_hardening": 0.005, "detector_lag": 0.002, "scatter": 0.005}
-# A second image effect is tried only when the first leaves chi^2/dof above
-# 1 by more than this: clean scans read up to 1.02 (each patch's noise is
-# measured on 100-700 background pixels, which alone inflates it by ~1 %),
-# and with 1e6 pixels 5 sigma of chi^2/dof is only 0.003.
-SECOND_EFFECT_EXCESS = 0.03
-
-
-def image_candidates(im: ImageModel) -> list[ImageCandidate]:
-    out = []
-    if im.stated_blur is not None:
-        nom = im.stated_blur
-
-        def blur_words(v, s, im=im):
-            extra = np.sign(v[0] ** 2 - nom ** 2) * np.sqrt(abs(v[0] ** 2 - nom ** 2))
-            return (f"edges are blurred by sigma {v[0]:.4f} ± {s[0]:.4f} px, not the stated {nom:.3f} px "
-                    f"({extra:+.3f} px in quadrature)")
-        out.append(ImageCandidate("blur", ("blur",), blur_words,
-                                  lambda v: Blur(float(np.sqrt(max(v[0] ** 2 - nom ** 2, 0.0)))),
-                                  lambda v: np.sqrt(abs(v[0] ** 2 - nom ** 2)), FLOORS["blur"]))
-    out.append(ImageCandidate("beam_hardening", ("beam_hardening",),
-                              lambda v, s: f"attenuation grows less than path length: beta {v[0]:.4f} ± {s[0]:.4f} "
-                                           f"(a chord of attenuation 1 reads {1 / (1 + v[0]):.3f})",
-                              lambda v: BeamHardening(float(v[0])), lambda v: v[0], FLOORS["beam_hardening"]))
-    out.append(ImageCandidate("detector_lag", ("lag",),
-                              lambda v, s: f"each frame keeps {100 * v[0]:.2f} ± {100 * s[0]:.2f} % of the previous "
-                                           "one (a ghost of the previous marker positions; it pulls detected "
-                                           f"centres back: re-run `conecal detect --lag {v[0]:.4f}`)",
-                              lambda v: DetectorLag(float(v[0])), lambda v: v[0], FLOORS["detector_lag"]))
-    out.append(ImageCandidate("scatter", ("scatter",),
-                              lambda v, s: f"an intensity of {100 * v[0]:.2f} ± {100 * s[0]:.2f} % of the open beam is "
-                                           "added everywhere (scatter or a dark-offset error)",
-                              lambda v: Scatter(float(v[0])), lambda v: v[0], FLOORS["scatter"]))
-    return out
-
-
-BOUNDS = {"mu": (1e-6, np.inf), "size": (-0.2, 0.2), "blur": (0.0, 3.0), "beam_hardening": (-0.5, 3.0), "lag": (-0.5, 0.95),
-          "scatter": (-0.5, 2.0)}
-SCALES = {"mu": 0.01, "size": 0.001, "blur": 0.05, "beam_hardening": 0.01, "lag": 0.01, "scatter": 0.005}
-
-
-class ImageFitter:
-    """Least squares over the base parameters plus a set of candidates'."""
-
-    def __init__(self, im: ImageModel, start: np.ndarray):
-        self.im = im
-        self.start = start
-        self.placement = im.placement()
-        self.base_free = ("mu", "size") if im.stated_blur is not None else ("mu", "size", "blur")
-
-    def fit(self, cands, select=None, x0=None):
-        """Least squares over the base parameters (``mu``, the shadows'
-        common size change: sphere diameters and magnification are known to
-        a few 1e-3, and the blur when the scan does not state it) and the
-        candidates'."""
-        names = list(self.base_free) + [n for c in cands for n in c.free]
-        idx = [ImageModel.PARAMS.index(n) for n in names]
-        x_full = self.start.copy() if x0 is None else x0.copy()
-
-        def full(z):
-            x = x_full.copy()
-            x[idx] = z
-            return x
-
-        lo = np.array([BOUNDS[n][0] for n in names])
-        hi = np.array([BOUNDS[n][1] for n in names])
-        z0 = np.clip(x_full[idx], lo + 1e-9, hi - 1e-9)
-        res = least_squares(lambda z: self.im.residuals(full(z), select), z0, bounds=(lo, hi),
-                            x_scale=np.array([SCALES[n] for n in names]), diff_step=1e-4,
-                            xtol=1e-8, ftol=1e-10, max_nfev=60)
-        J = res.jac
-        chi2 = float(res.fun @ res.fun)
-        dof = max(len(res.fun) - len(z0), 1)
-        cov = np.linalg.pinv(J.T @ J) * max(chi2 / dof, 1.0)
-        sig = np.sqrt(np.clip(np.diag(cov), 0, None))
-        return full(res.x), dict(zip(names, sig)), chi2, len(res.fun)
-
-    def evaluate(self, cands) -> dict:
-        """Fit, re-centre every shadow under this model (an effect such as
-        lag moves what the base model takes for the centre), fit again, and
-        score on held-out frames (even against odd frame order)."""
-        self.im.place(self.placement)
-        x, *_ = self.fit(cands)
-        for _ in range(3):     # lag's ghost: three passes take 5 % to 4.94 %, two to 4.87 %
-            self.im.refine_centres(x, iterations=1)
-            x, sig, chi2, n = self.fit(cands, x0=x)
-        k = len(self.base_free) + sum(c.k for c in cands)
-        fitted = self.im.placement()
-        parity = np.array([p.parity for p in self.im.patches])
-        r2 = np.zeros(len(parity))     # held-out chi^2 per patch
-        for train in (parity == 0, parity == 1):
-            if train.all() or not train.any():
-                raise ValueError("held-out frames need both even and odd frames")
-            xt, *_ = self.fit(cands, train, x0=x)
-            for i in np.flatnonzero(~train):
-                p = self.im.patches[i]
-                r = (p.recorded - self.im.predict_patch(p, xt)) * p.weight
-                r2[i] = float((r * r).sum())
-            self.im.place(fitted)
-        return {"cands": cands, "x": x, "sigma": sig, "chi2": chi2, "n": n, "bic": chi2 + k * np.log(n),
-                "heldout": float(r2.sum()), "heldout_r2": r2, "placement": fitted}
-
-
-def radial_profile(im: ImageModel, x, bins: int = 24) -> dict:
-    """Mean recorded minus modelled attenuation against distance from the
-    shadow centre, in shadow radii (0..2), and its standard error."""
-    edges = np.linspace(0, 2, bins + 1)
-    num, den, sq = np.zeros(bins), np.zeros(bins), np.zeros(bins)
-    for p in im.patches:
-        r = p.recorded - im.predict_patch(p, x)
-        yy, xx = np.mgrid[p.box[0]:p.box[1], p.box[2]:p.box[3]]
-        rho = np.hypot(xx - p.centre[0], yy - p.centre[1]) / p.radius_px
-        k = np.digitize(rho.ravel(), edges) - 1
-        ok = (k >= 0) & (k < bins)
-        np.add.at(num, k[ok], r.ravel()[ok])
-        np.add.at(sq, k[ok], r.ravel()[ok] ** 2)
-        np.add.at(den, k[ok], 1)
-    mean = num / np.maximum(den, 1)
-    se = np.sqrt(np.maximum(sq / np.maximum(den, 1) - mean ** 2, 0) / np.maximum(den, 1))
-    return {"radius": (0.5 * (edges[1:] + edges[:-1])).tolist(), "mean": mean.tolist(), "stderr": se.tolist()}
-
-
-def _profile_at(im, e):
-    im.place(e["placement"])
-    return radial_profile(im, e["x"])
-
-
-def diagnose_image(model, scan, *, geometric_effects=(), geometric_base=None, max_frames: int = 48,
-                   progress=None) -> dict:
-    """The image-level decision: which imaging effect (if any) the recorded
-    marker shadows show beyond the line-integral model (and beyond what the
-    geometric level found: a detector distortion it claimed is rendered).
-    Returns a JSON-ready dict."""
-    from .select import rank, score
-
-    try:
-        im = ImageModel(model, scan, effects=geometric_effects, base=geometric_base, max_frames=max_frames,
-                        progress=progress)
-    except ValueError as exc:
-        return {"verdict": f"image level not run: {exc}", "effects": [], "candidates": []}
-    x0 = im.start()
-    fitter = ImageFitter(im, x0)
-    im.set_weights(x0)
-    x, *_ = fitter.fit([])
-    im.set_weights(x)
-    fitter.start = x
-    base = fitter.evaluate([])
-    im.set_weights(base["x"])      # weights from the base model, shared by every candidate
-    base = fitter.evaluate([])
-    cands = image_candidates(im)
-    rows, evals = [], {}
-    for c in cands:
-        e = fitter.evaluate([c])
-        evals[c.label] = e
-        v = [float(e["x"][ImageModel.PARAMS.index(n)]) for n in c.free]
-        sc = score(base, e, c.k)
-        sc["above_floor"] = c.big_enough(v)
-        sc["claimable"] = sc["claimable"] and sc["above_floor"]
-        rows.append({"effect": c.label, "parameters": dict(zip(c.free, v)),
-                     "sigma": {n: float(e["sigma"][n]) for n in c.free}, **sc})
-    claimed, ambiguous = rank(rows, {k: e["heldout_r2"] for k, e in evals.items()})
-    chosen = [claimed[0]["effect"]] if claimed else []
-    final = evals[chosen[0]] if chosen else base
-    n = base["n"]
-    if claimed and final["chi2"] / n - 1 > max(5 * np.sqrt(2 / n), SECOND_EFFECT_EXCESS):
-        # one effect leaves chi^2/dof well above 1: try a second, by the same rule
-        by = {c.label: c for c in cands}
-        best2, gain2 = None, 0.0
-        for r in claimed[1:3]:
-            e2 = fitter.evaluate([by[chosen[0]], by[r["effect"]]])
-            sc = score(final, e2, by[r["effect"]].k)
-            c2 = by[r["effect"]]
-            v2 = [e2["x"][ImageModel.PARAMS.index(n)] for n in c2.free]
-            if sc["claimable"] and c2.big_enough(v2) and sc["heldout_gain_chi2"] > gain2:
-                best2, gain2 = (r["effect"], e2), sc["heldout_gain_chi2"]
-        if best2 is not None:
-            chosen.append(best2[0])
-            final = best2[1]
-            ambiguous = [a for a in ambiguous if a != best2[0]]
-    by = {c.label: c for c in cands}
-    found = []
-    for label in chosen:
-        c = by[label]
-        v = np.array([final["x"][ImageModel.PARAMS.index(n)] for n in c.free])
-        s = np.array([final["sigma"][n] for n in c.free])
-        found.append({"effect": label, "level": "image", "parameters": dict(zip(c.free, v.tolist())),
-                      "sigma": dict(zip(c.free, s.tolist())), "statement": c.describe(v, s),
-                      "physics": c.build(v).physics})
-    verdict = ("the marker shadows match the line-integral model to the noise" if not found else
-               " and ".join(f["statement"] for f in found) +
-               (f"; not distinguishable here from {', '.join(ambiguous)}" if ambiguous else ""))
-    k_base = len(fitter.base_free)
-    return {
-        "verdict": verdict,
-        "effects": found,
-        "ambiguous_with": ambiguous,
-        "candidates": rows,
-        "stated_blur_px": im.stated_blur,
-        "base_parameters": {"mu_per_mm": float(base["x"][0]), "shadow_size_change": float(base["x"][1]),
-                            "blur_px": float(base["x"][2])},
-        "chi2_per_dof_before": base["chi2"] / max(n - k_base, 1),
-        "chi2_per_dof_after": final["chi2"] / max(n - k_base - sum(by[c].k for c in chosen), 1),
-        "heldout_gain_chi2": float(base["heldout"] - final["heldout"]) if chosen else 0.0,
-        "noise_floor_attenuation": im.sigma_air,
-        "n_patches": len(im.patches),
-        "n_pixels": n,
-        "skipped": im.skipped,
-        "radial_residual_before": _profile_at(im, base),
-        "radial_residual_after": _profile_at(im, final),
-    }
-
-
-def scene_chi2(model, scan, evaluations: dict, *, max_frames: int = 24) -> dict:
-    """For geometric candidates the marker positions cannot tell apart: chi^2
-    of the recorded shadows rendered from each one's refitted scene (base
-    image model), per marker patch that every scene could use (same order)."""
-    per = {}
-    for label, e in evaluations.items():
-        im = ImageModel(model, scan, effects=e["effects"], base=e["x9"], max_frames=max_frames)
-        x0 = im.start()
-        im.set_weights(x0)
-        fitter = ImageFitter(im, x0)
-        x, *_ = fitter.fit([])
-        im.refine_centres(x, iterations=2)
-        x, *_ = fitter.fit([], x0=x)
-        per[label] = {(p.frame, p.id): float((((p.recorded - im.predict_patch(p, x)) * p.weight) ** 2).sum())
-                      for p in im.patches}
-    common = sorted(set.intersection(*(set(v) for v in per.values())))
-    return {label: np.array([v[k] for k in common]) for label, v in per.items()}

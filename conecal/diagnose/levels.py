@@ -33,7 +33,9 @@ def merge_levels(geometric: dict, image: dict | None) -> dict:
                 img["centroid_pull"] = {"value": e["parameters"]["pull"], "sigma": e["sigma"]["pull"]}
                 notes.append(e["statement"])
     out["effects"] = effects + image_effects
-    geo = "; ".join(e["statement"] for e in effects) or "no left-out effect beats the noise"
+    # with nothing named, the geometric level's own sentence (it says what was located)
+    geo = ("; ".join(e["statement"] for e in effects) or
+           ("no left-out effect beats the noise" if geometric["effects"] else geometric["verdict"]))
     if out.get("ambiguous_with") and effects:
         geo += f" (not distinguishable here from {', '.join(out['ambiguous_with'])})"
     img = image["verdict"]

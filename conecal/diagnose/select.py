@@ -24,6 +24,7 @@ from ..effects.motion import (AxisNonOrthogonality, AxisScale, Backlash, Detecto
                               RotaryRunout, RotaryWobble)
 from ..kinematics import LinearAxis, RotaryAxis
 from .model import CentroidPull, EllipseCentreBias
+from .locate import describe, detector_field, frame_curves, locate
 from .structure import structure_tests
 
 
@@ -37,6 +38,7 @@ class Candidate:
     scales: tuple
     build: object          # vector -> Effect
     describe: object       # vector, sigma -> plain words
+    impossible: object = None   # vector -> reason the value cannot be physical, or None
 
     @property
     def k(self) -> int:
@@ -111,7 +113,8 @@ def candidates(model) -> list[Candidate]:
         out.append(Candidate("detector_lag", ("pull",), ("",), (0.005,),
                              lambda x: CentroidPull(float(x[0])),
                              lambda x, s: f"each measured centre is pulled {100 * x[0]:+.2f} ± {100 * s[0]:.2f} % of "
-                                          "the way back to the previous frame's (a lag ghost of the previous frame)"))
+                                          "the way back to the previous frame's (a lag ghost of the previous frame)",
+                             lambda x: "a lag ghost cannot push a centre forwards (pull < 0)" if x[0] < 0 else None))
     if moving:   # one latency for every axis: the encoders are read together
         out.append(Candidate("encoder_latency", ("latency",), ("s",), (0.005,),
                              lambda x: EncoderLatency(float(x[0])),
@@ -213,10 +216,30 @@ def evaluate(model, cands) -> dict:
 
 
 def score(base: dict, e: dict, k: int) -> dict:
-    """How much a candidate with ``k`` more parameters beats ``base``; the claim rule."""
+    """How much a candidate with ``k`` more parameters beats ``base``; the claim rule.
+
+    A candidate nests the base model, so on held-out data it can lose only
+    what its ``k`` parameters fit to noise (χ² of order k). One that loses
+    far more (``DEGENERATE_LOSS``) has an evaluation that broke (a fit that
+    ran off, a parameter the held-out half cannot pin): it is marked
+    ``degenerate`` and not scored."""
     gain = float(base["heldout"] - e["heldout"])
     bic = float(base["bic"] - e["bic"])
-    return {"heldout_gain_chi2": gain, "bic_gain": bic, "claimable": bool(gain > max(10.0, 3 * k) and bic > 10.0)}
+    out = {"heldout_gain_chi2": gain, "bic_gain": bic, "claimable": bool(gain > max(10.0, 3 * k) and bic > 10.0)}
+    n = len(e.get("heldout_r2", ())) or 1
+    if gain < -max(DEGENERATE_LOSS, 10 * k, 5 * np.sqrt(2 * n)):
+        out.update(claimable=False, degenerate=True,
+                   reason=f"held-out chi^2 worse by {-gain:.0f} than the base model it nests: a degenerate fit, "
+                          "not scored")
+    return out
+
+
+# χ² a nested candidate may lose on held-out data before its evaluation is
+# taken as broken rather than as a model that lost (see ``score``)
+DEGENERATE_LOSS = 100.0
+# A claim must bring the residual RMS within this factor of the noise floor
+# and leave no significant structure (issue 28: adequacy before a claim).
+ADEQUATE_RMS = 1.15
 
 
 def rank(rows: list[dict], heldout_r2: dict) -> tuple[list[dict], list[str]]:
@@ -307,8 +330,12 @@ def diagnose(model, *, alpha: float = 0.01, progress=None, tie_breaker=None) -> 
         e = evaluate(model, [c])
         evals[c.label] = e
         nb = model.n_base
-        rows.append({"effect": c.label, "parameters": dict(zip(c.names, e["x"][nb:].tolist())),
-                     "sigma": dict(zip(c.names, e["sigma"][nb:].tolist())), **score(base, e, c.k)})
+        row = {"effect": c.label, "parameters": dict(zip(c.names, e["x"][nb:].tolist())),
+               "sigma": dict(zip(c.names, e["sigma"][nb:].tolist())), **score(base, e, c.k)}
+        why = c.impossible(e["x"][nb:]) if c.impossible is not None else None
+        if why:
+            row.update(claimable=False, impossible=why)
+        rows.append(row)
         if progress:
             progress(i + 1, len(cands) + 1)
     claimed, ambiguous = rank(rows, {k: e["heldout_r2"] for k, e in evals.items()})
@@ -361,9 +388,21 @@ def diagnose(model, *, alpha: float = 0.01, progress=None, tie_breaker=None) -> 
             found.append({"effect": label, "parameters": dict(zip(c.names, x.tolist())),
                           "sigma": dict(zip(c.names, s.tolist())), "units": dict(zip(c.names, c.units)),
                           "statement": c.describe(x, s), "physics": c.build(x).physics})
-    verdict = ("no left-out effect beats the noise" if not chosen else
-               " and ".join(f["statement"] for f in found) +
-               (f"; not distinguishable here from {', '.join(ambiguous)}" if ambiguous else ""))
+    located = located_mismatches(model, None, b0, alpha)
+    floor = model.noise_floor_px()
+    rms_after = model.rms_px(final["effects"], final["x9"])
+    adequacy = None
+    partial = []
+    if chosen:
+        remaining = located_mismatches(model, final["effects"], final["x9"], alpha)
+        adequacy = {"rms_px_after": rms_after, "noise_floor_px": floor, "limit": ADEQUATE_RMS,
+                    "rms_ok": bool(rms_after <= ADEQUATE_RMS * floor),
+                    "structure_left": [t["variable"] for t in tests_after if t["significant"]],
+                    "remaining": remaining}
+        adequacy["adequate"] = bool(adequacy["rms_ok"] and not adequacy["structure_left"])
+        if not adequacy["adequate"]:
+            partial, found = found, []
+    verdict = _verdict(found, partial, ambiguous, located, adequacy, model.rms_px(None, b0), floor)
     point = point_model_cost(model, base)
     if point is not None and not any(f["effect"] == "ellipse_centre_bias" for f in found):
         verdict += f"; {point['statement']}"
@@ -371,7 +410,10 @@ def diagnose(model, *, alpha: float = 0.01, progress=None, tie_breaker=None) -> 
         "verdict": verdict,
         "point_model": point,
         "effects": found,
-        "ambiguous_with": ambiguous,
+        "partial": partial,
+        "located": located,
+        "adequacy": adequacy,
+        "ambiguous_with": ambiguous if found else [],
         "candidates": rows,
         "tests_before": tests_before,
         "tests_after": tests_after,
@@ -388,3 +430,32 @@ def diagnose(model, *, alpha: float = 0.01, progress=None, tie_breaker=None) -> 
                          "time": model.times[model.obs.row].tolist(),
                          "before": px_before.tolist(), "after": px_after.tolist()},
     }, final
+
+
+def located_mismatches(model, effects, base, alpha: float) -> list[dict]:
+    """Where the model and the recording differ, before any effect is named:
+    the per-frame curves and the detector field of ``locate``."""
+    out = locate(model, frame_curves(model, effects, base), alpha)
+    field = detector_field(model, effects, base, alpha)
+    if field is not None:
+        out.append(field)
+    return sorted(out, key=lambda d: -d["size_px"])
+
+
+def _verdict(found, partial, ambiguous, located, adequacy, rms_before, floor) -> str:
+    """The sentence, made from the decision's data."""
+    where = "; ".join(describe(loc) for loc in located[:3])
+    if found:
+        return (" and ".join(f["statement"] for f in found)
+                + (f"; not distinguishable here from {', '.join(ambiguous)}" if ambiguous else ""))
+    if partial:
+        left = adequacy["remaining"]
+        what = "; ".join(describe(loc) for loc in left[:2]) or ", ".join(adequacy["structure_left"]) or "no structure"
+        return (f"located, not named: {where or 'residual above the noise'}. "
+                f"{' and '.join(f['effect'] for f in partial)} explains part of it (RMS {rms_before:.4f} -> "
+                f"{adequacy['rms_px_after']:.4f} px against a noise floor of {floor:.4f} px) but leaves {what}; "
+                "not claimed")
+    if located:
+        return (f"located, not named: {where}; no effect of the library explains it "
+                f"(RMS {rms_before:.4f} px against a noise floor of {floor:.4f} px)")
+    return "no left-out effect beats the noise"
