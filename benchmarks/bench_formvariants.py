@@ -43,7 +43,9 @@ from pathlib import Path
 
 from click.testing import CliRunner
 
-from conecal.cli.main import cli
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))   # this checkout, not an installed copy
+
+from conecal.cli.main import cli  # noqa: E402
 
 HERE = Path(__file__).parent
 

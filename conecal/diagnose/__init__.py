@@ -3,7 +3,8 @@
 from .image_select import diagnose_image
 from .levels import merge_levels
 from .model import ResultModel
-from .select import candidates, diagnose
+from .candidates import candidates
+from .select import diagnose
 from .structure import structure_tests
 
 __all__ = ["ResultModel", "candidates", "diagnose", "diagnose_image", "merge_levels", "structure_tests"]

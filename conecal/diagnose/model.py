@@ -28,9 +28,12 @@ from ..kinematics import RotaryAxis
 class CentroidPull:
     """What detector lag does to a measured centre: the ghost of the previous
     frame pulls it a fraction ``pull`` of the way back to where the marker
-    was then (``detect``'s window sees both). Moves nothing in the world."""
+    was then (``detect``'s window sees both), and ``pull2`` towards where it
+    was the frame before that (lag decaying over frames). Moves nothing in
+    the world."""
 
     pull: float
+    pull2: float = 0.0
     name = "detector_lag"
 
     @property
@@ -237,14 +240,20 @@ class ResultModel:
         det = w.detector_offsets[rows] if w.detector_offsets is not None else 0.0
         O = g.detector_origin + det
         xy = w.imaging.distort(_project(S, O, g.u, g.v, g.normal, g.pixel_pitch, X), g.shape)
-        pull = sum(e.pull for e in (effects or ()) if isinstance(e, CentroidPull))
-        if pull:
+        pulls = [e for e in (effects or ()) if isinstance(e, CentroidPull)]
+        if pulls:
             prev = self.previous_row[rows]
-            Xp = np.einsum("mij,mj->mi", T.R[prev], points[idx]) + T.t[prev]
-            Sp = g.source + w.source_offsets[prev]
-            Op = g.detector_origin + (w.detector_offsets[prev] if w.detector_offsets is not None else 0.0)
-            xyp = w.imaging.distort(_project(Sp, Op, g.u, g.v, g.normal, g.pixel_pitch, Xp), g.shape)
-            xy = xy + pull * (xyp - xy)
+            back = {1: sum(e.pull for e in pulls), 2: sum(e.pull2 for e in pulls)}
+            shift = np.zeros_like(xy)
+            for _, f in sorted(back.items()):
+                if f:
+                    Xp = np.einsum("mij,mj->mi", T.R[prev], points[idx]) + T.t[prev]
+                    Sp = g.source + w.source_offsets[prev]
+                    Op = g.detector_origin + (w.detector_offsets[prev] if w.detector_offsets is not None else 0.0)
+                    xyp = w.imaging.distort(_project(Sp, Op, g.u, g.v, g.normal, g.pixel_pitch, Xp), g.shape)
+                    shift += f * (xyp - xy)
+                prev = self.previous_row[prev]
+            xy = xy + shift
         bias = sum(e.fraction for e in (effects or ()) if isinstance(e, EllipseCentreBias))
         if bias:
             from ..geometry.sphere import shadow_bias

@@ -199,7 +199,7 @@ class PoseModel:
 
 def candidates(model: PoseModel) -> list:
     """Every robot effect this recording could show, parameterised."""
-    from .select import Candidate
+    from .candidates import Candidate
 
     out = []
     q = model.readings

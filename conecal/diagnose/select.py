@@ -14,152 +14,13 @@ significant structure, pairs with the other candidates are tried.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-
 import numpy as np
 from scipy.optimize import least_squares
 
-from ..effects.imaging import DetectorDistortion
-from ..effects.motion import (AxisNonOrthogonality, AxisScale, Backlash, DetectorDrift, EncoderLatency, FocalSpotDrift,
-                              RotaryRunout, RotaryWobble)
-from ..kinematics import LinearAxis, RotaryAxis
-from .model import CentroidPull, EllipseCentreBias
+from .candidates import Candidate, candidates  # noqa: F401  (Candidate: re-exported for callers)
 from .locate import describe, detector_field, frame_curves, locate
+from .model import EllipseCentreBias
 from .structure import structure_tests
-
-
-@dataclass(frozen=True)
-class Candidate:
-    """An effect with its fitted parameters as a vector."""
-
-    label: str
-    names: tuple
-    units: tuple
-    scales: tuple
-    build: object          # vector -> Effect
-    describe: object       # vector, sigma -> plain words
-    impossible: object = None   # vector -> reason the value cannot be physical, or None
-
-    @property
-    def k(self) -> int:
-        return len(self.names)
-
-
-def _moving(model):
-    return [k for k, n in enumerate(model.chain.names) if np.ptp(model.readings[:, k]) > 0]
-
-
-def candidates(model) -> list[Candidate]:
-    """Every effect of the registry that this recording could show, parameterised."""
-    if model.stage == "fit-pose":
-        from .pose import candidates as pose_candidates
-
-        return pose_candidates(model)
-    out = []
-    dur = max(float(np.ptp(model.times)), 1e-9)
-    out.append(Candidate("focal_spot_drift", ("vx", "vy", "vz"), ("mm/s",) * 3, (1e-3 / dur,) * 3,
-                         lambda x: FocalSpotDrift(tuple(x)),
-                         lambda x, s: "the focal spot drifted (" + ", ".join(
-                             f"{a} {1e3 * v:+.3f} ± {1e3 * e:.3f} µm/s" for a, v, e in zip("xyz", x, s)) + ")"))
-    out.append(Candidate("detector_drift", ("vx", "vy", "vz"), ("mm/s",) * 3, (1e-3 / dur,) * 3,
-                         lambda x: DetectorDrift(tuple(x)),
-                         lambda x, s: "the detector drifted (" + ", ".join(
-                             f"{a} {1e3 * v:+.3f} ± {1e3 * e:.3f} µm/s" for a, v, e in zip("xyz", x, s)) + ")"))
-    out.append(Candidate("detector_distortion:radial", ("radial_px",), ("px",), (0.05,),
-                         lambda x: DetectorDistortion(float(x[0]), 0.0),
-                         lambda x, s: f"the detector image is warped radially by {x[0]:+.3f} ± {s[0]:.3f} px at its "
-                                      "corner (pincushion > 0)"))
-    out.append(Candidate("detector_distortion:s_shaped", ("s_px",), ("px",), (0.05,),
-                         lambda x: DetectorDistortion(0.0, float(x[0])),
-                         lambda x, s: f"the detector image is S-shaped: twisted by {x[0]:+.3f} ± {s[0]:.3f} px at its "
-                                      "corner (counter-clockwise > 0), as an image intensifier in a magnetic field"))
-    moving = _moving(model)
-    axes = model.chain.axes
-    for k in moving:
-        a = axes[k]
-        unit = "deg" if isinstance(a, RotaryAxis) else "mm"
-        q = model.readings[:, k]
-        v = np.gradient(q, model.times)
-        if isinstance(a, LinearAxis):
-            out.append(Candidate(f"axis_scale:{a.name}", ("scale",), ("",), (1e-4,),
-                                 lambda x, n=a.name: AxisScale(n, float(x[0])),
-                                 lambda x, s, n=a.name: f"axis {n} moves {x[0] * 1e6:+.0f} ± {s[0] * 1e6:.0f} ppm "
-                                                        "more than its encoder says"))
-            for b in moving:
-                if b != k and isinstance(axes[b], LinearAxis):
-                    out.append(Candidate(f"axis_nonorthogonality:{a.name}->{axes[b].name}", ("angle",), ("deg",), (0.01,),
-                                         lambda x, n=a.name, m=axes[b].name: AxisNonOrthogonality(n, m, float(x[0])),
-                                         lambda x, s, n=a.name, m=axes[b].name:
-                                         f"axis {n} leans {x[0]:+.4f} ± {s[0]:.4f} deg towards {m}"))
-        if isinstance(a, RotaryAxis):
-            out.append(Candidate(f"rotary_wobble:{a.name}", ("a_cos", "a_sin"), ("deg", "deg"), (0.005, 0.005),
-                                 lambda x, n=a.name: RotaryWobble(n, float(np.hypot(*x)), float(np.degrees(np.arctan2(x[1], x[0])))),
-                                 lambda x, s, n=a.name: f"axis {n} wobbles by {np.hypot(*x):.4f} ± {np.hypot(*s) / np.sqrt(2):.4f} deg "
-                                                        f"once per turn (phase {np.degrees(np.arctan2(x[1], x[0])):.0f} deg)"))
-            out += _runout_candidates(model, a)
-        if (v > 0).any() and (v < 0).any():
-            out.append(Candidate(f"backlash:{a.name}", ("amount",), (unit,), (0.005,),
-                                 lambda x, n=a.name: Backlash(n, float(x[0])),
-                                 lambda x, s, n=a.name, u=unit: f"axis {n} has {x[0]:+.4f} ± {s[0]:.4f} {u} backlash "
-                                                                "(error follows the direction of motion)"))
-    if model.centre_model == "projection":
-        d_mm = 2 * float(np.median(model.radii))
-        out.append(Candidate("ellipse_centre_bias", ("fraction",), ("",), (0.05,),
-                             lambda x: EllipseCentreBias(float(x[0])),
-                             lambda x, s, d=d_mm: f"the measured centres are the shadows' attenuation centroids, not the "
-                                                  f"projected sphere centres: {x[0]:.3f} ± {s[0]:.3f} of the ellipse-centre "
-                                                  f"bias of {d:.2f} mm spheres (fit with --centre-model centroid)"))
-    if moving:   # a lag ghost drags each centre back towards the previous frame's
-        out.append(Candidate("detector_lag", ("pull",), ("",), (0.005,),
-                             lambda x: CentroidPull(float(x[0])),
-                             lambda x, s: f"each measured centre is pulled {100 * x[0]:+.2f} ± {100 * s[0]:.2f} % of "
-                                          "the way back to the previous frame's (a lag ghost of the previous frame)",
-                             lambda x: "a lag ghost cannot push a centre forwards (pull < 0)" if x[0] < 0 else None))
-    if moving:   # one latency for every axis: the encoders are read together
-        out.append(Candidate("encoder_latency", ("latency",), ("s",), (0.005,),
-                             lambda x: EncoderLatency(float(x[0])),
-                             lambda x, s: f"frames were exposed {1e3 * x[0]:+.1f} ± {1e3 * s[0]:.1f} ms after the "
-                                          "encoders were read (error ∝ velocity)"))
-    return out
-
-
-RUNOUT_HARMONICS = (2, 3)
-_TIMES = {2: "twice", 3: "three times"}
-
-
-def _across_beam(model, a) -> float:
-    """Angle (rad) in the axis' (e1, e2) plane of the direction across the
-    beam: the runout the projections see (a fixed sensitive direction)."""
-    from ..geometry.rotations import orthonormal_complement
-
-    e1, e2 = orthonormal_complement(a.direction)
-    t = np.cross(a.direction, model.geometry.source - a.point)
-    return float(np.arctan2(t @ e2, t @ e1))
-
-
-def _runout(axis: str, k: int, beta: float, x) -> RotaryRunout:
-    """Runout ``x[0] cos(k q) + x[1] sin(k q)`` (mm) along the direction at
-    ``beta``: a line traced k times per turn, i.e. equal forward and
-    backward whirls."""
-    A = float(np.hypot(*x))
-    phi = float(np.arctan2(-x[1], x[0]))
-    return RotaryRunout(axis, A / 2, float(np.degrees(phi + beta)), k, A / 2, float(np.degrees(phi - beta)))
-
-
-def _runout_candidates(model, a) -> list[Candidate]:
-    """Runout at 2 and 3 times per turn, across the beam. A circular scan
-    sees the axis' sideways motion only across the beam (along it, only
-    through a magnification change of ~1e-4); and once per turn it is a
-    centring error, which the spheres' fitted positions absorb."""
-    beta = _across_beam(model, a)
-    return [Candidate(f"rotary_runout:{a.name}:{k}", ("across_cos", "across_sin"), ("mm", "mm"), (0.002, 0.002),
-                      lambda x, n=a.name, k=k: _runout(n, k, beta, x),
-                      lambda x, s, n=a.name, k=k:
-                      f"axis {n} runs out {_TIMES[k]} per turn: its line moves across the beam by "
-                      f"{1e3 * np.hypot(*x):.1f} ± {1e3 * float(np.sqrt(np.mean(np.square(s)))):.1f} µm "
-                      f"(amplitude; first peak at {n} = {(np.degrees(np.arctan2(x[1], x[0])) / k) % (360 / k):.0f} deg, "
-                      f"then every {360 / k:.0f} deg)")
-            for k in RUNOUT_HARMONICS]
 
 
 def _fit(model, cands, select=None, x0=None):
@@ -179,8 +40,27 @@ def _fit(model, cands, select=None, x0=None):
         x9, effs = split(x)
         return model.whitened(effs, x9, select)
 
-    x0 = np.zeros(nb + sum(ks)) if x0 is None else x0
-    res = least_squares(fun, x0, x_scale=scales, method="lm", xtol=1e-10, ftol=1e-10, max_nfev=200 * len(x0))
+    if x0 is None:
+        x0 = np.concatenate([np.zeros(nb)] + [np.zeros(c.k) if c.x0 is None else np.asarray(c.x0, float)
+                                              for c in cands])
+    Jb = base_jacobian(model) if model.stage != "fit-pose" else None   # a registration moves far: not linear
+    if Jb is not None and select is not None:
+        Jb = Jb.reshape(-1, model.n_comp, nb)[np.asarray(select, bool)].reshape(-1, nb)
+
+    def jac(x):
+        # the fit's own parameters enter almost linearly and the effects are
+        # small: their columns are taken once, at the fit (``base_jacobian``);
+        # only the effects' columns are differenced at x (forward, 1e-3 of scale)
+        f0 = fun(x)
+        cols = [Jb]
+        for j in range(nb, len(x)):
+            xp = x.copy()
+            xp[j] += 1e-3 * scales[j]
+            cols.append(((fun(xp) - f0) / (1e-3 * scales[j]))[:, None])
+        return np.hstack(cols)
+
+    res = least_squares(fun, x0, jac=jac if Jb is not None else "2-point", x_scale=scales, method="lm", xtol=1e-10, ftol=1e-10,
+                        max_nfev=200 * len(x0))
     J = res.jac
     try:
         cov = np.linalg.pinv(J.T @ J)
@@ -192,17 +72,65 @@ def _fit(model, cands, select=None, x0=None):
     return res.x, np.sqrt(np.clip(np.diag(cov), 0, None)), chi2, split
 
 
-def _heldout(model, cands) -> np.ndarray:
-    """Two-fold held-out squared whitened residuals: fit on even frames,
-    score odd ones, and back; (m,) per observation, in observation order."""
-    even = model.obs.row % 2 == 0
-    out = np.zeros(len(even))
-    for train in (even, ~even):
-        x, _, _, split = _fit(model, cands, train)
+def base_jacobian(model) -> np.ndarray:
+    """(n_comp m, n_base) d whitened residual / d the fit's own parameters at
+    the fit, no effect on (central differences, 1e-2 of each scale); cached
+    on the model."""
+    J = getattr(model, "_base_jacobian", None)
+    if J is None:
+        nb = model.n_base
+        cols = []
+        for j in range(nb):
+            h = np.zeros(nb)
+            h[j] = 1e-2 * model.base_scales[j]
+            cols.append((model.whitened(None, h) - model.whitened(None, -h)) / (2 * h[j]))
+        J = np.column_stack(cols) if cols else np.zeros((model.n_comp * len(model.obs.row), 0))
+        model._base_jacobian = J
+    return J
+
+
+def _heldout(model, cands, folds=None) -> np.ndarray:
+    """Held-out squared whitened residuals, (m,) per observation in
+    observation order: fit on all folds but one, score that one. Default
+    folds: even frames against odd frames (interpolation)."""
+    if folds is None:
+        folds = [model.obs.row % 2 == 0, model.obs.row % 2 == 1]
+    out = np.zeros(len(model.obs.row))
+    for test in folds:
+        x, _, _, split = _fit(model, cands, ~test)
         x9, effs = split(x)
-        r = model.whitened(effs, x9, ~train).reshape(-1, model.n_comp)
-        out[~train] = np.sum(r * r, axis=1)
+        r = model.whitened(effs, x9, test).reshape(-1, model.n_comp)
+        out[test] = np.sum(r * r, axis=1)
     return out
+
+
+TIME_BLOCKS = 4
+
+
+def time_blocks(model, n: int = TIME_BLOCKS) -> list[np.ndarray]:
+    """Folds of contiguous time (for a one-way scan also contiguous ranges
+    of every axis reading): each observation's frame in one of ``n`` blocks."""
+    t = model.times[model.obs.row]
+    edges = np.quantile(t, np.linspace(0, 1, n + 1)[1:-1])
+    b = np.searchsorted(edges, t, side="right")
+    return [b == k for k in range(n) if (b == k).any() and (b != k).any()]
+
+
+def block_check(model, base_cands, cands) -> dict:
+    """Whether ``cands`` (added to ``base_cands``) still predict data from
+    time blocks they were not fitted on, i.e. the model extrapolates across
+    time and the axes' ranges instead of only interpolating between
+    neighbouring frames. Forms local in time (splines, warm-ups) are not
+    asked to extrapolate: ``None`` for them."""
+    if any(c.local for c in cands):
+        return None
+    folds = time_blocks(model)
+    if len(folds) < 2:
+        return None
+    b = _heldout(model, base_cands, folds).sum()
+    e = _heldout(model, list(base_cands) + list(cands), folds).sum()
+    return {"folds": len(folds), "base_chi2": float(b), "with_chi2": float(e), "gain_chi2": float(b - e),
+            "passed": bool(b - e > 0)}
 
 
 def evaluate(model, cands) -> dict:
@@ -240,6 +168,47 @@ DEGENERATE_LOSS = 100.0
 # A claim must bring the residual RMS within this factor of the noise floor
 # and leave no significant structure (issue 28: adequacy before a claim).
 ADEQUATE_RMS = 1.15
+
+
+def _behind(evals, a: str, b: str) -> tuple[float, float]:
+    """Paired held-out chi^2 by which ``a`` trails ``b`` and its standard error."""
+    d = evals[a]["heldout_r2"] - evals[b]["heldout_r2"]
+    return float(d.sum()), (float(np.sqrt(len(d) * d.var())) if len(d) > 1 else 0.0)
+
+
+def choose_members(rows: list[dict], cands, evals) -> None:
+    """Per family, keep the most specific member that predicts held-out data
+    as well as the family's best (paired difference within two standard
+    errors, and 3); the others are not claimable (in place, with the reason)."""
+    row_of = {r["effect"]: r for r in rows}
+    fams = {}
+    for c in cands:
+        fams.setdefault(c.family_key, []).append(c)
+    for fam, members in fams.items():
+        if len(members) < 2:
+            continue
+        fit = [c for c in members if not row_of[c.label].get("degenerate") and not row_of[c.label].get("impossible")]
+        if not fit:
+            continue
+        best = max(fit, key=lambda c: row_of[c.label]["heldout_gain_chi2"])
+        pick = best
+        for c in sorted(fit, key=lambda c: (c.k, -row_of[c.label]["heldout_gain_chi2"])):
+            if c.k >= best.k:
+                break
+            behind, se = _behind(evals, c.label, best.label)
+            if behind < max(3.0, 2 * se):
+                pick = c
+                break
+        for c in members:
+            r = row_of[c.label]
+            r["family"] = fam
+            if c is pick:
+                r["family_choice"] = True
+                continue
+            if r["claimable"]:
+                r["claimable"] = False
+            r["not_chosen"] = (f"{pick.label} ({pick.k} parameters) predicts held-out data as well"
+                               if c.k > pick.k else f"{pick.label} predicts held-out data better")
 
 
 def rank(rows: list[dict], heldout_r2: dict) -> tuple[list[dict], list[str]]:
@@ -323,21 +292,35 @@ def diagnose(model, *, alpha: float = 0.01, progress=None, tie_breaker=None) -> 
     base = evaluate(model, [])
     r0 = model.whitened(None, base["x9"])   # the fit's own parameters refitted: zero unless registration is free
     tests_before = structure_tests(model, r0, alpha)
-    cands = candidates(model)
-    rows = []
-    evals = {}
-    for i, c in enumerate(cands):
-        e = evaluate(model, [c])
-        evals[c.label] = e
-        nb = model.n_base
-        row = {"effect": c.label, "parameters": dict(zip(c.names, e["x"][nb:].tolist())),
-               "sigma": dict(zip(c.names, e["sigma"][nb:].tolist())), **score(base, e, c.k)}
-        why = c.impossible(e["x"][nb:]) if c.impossible is not None else None
-        if why:
-            row.update(claimable=False, impossible=why)
-        rows.append(row)
-        if progress:
-            progress(i + 1, len(cands) + 1)
+    located = located_mismatches(model, None, base["x9"], alpha)
+    seen = {v for loc in located for v in [loc["variable"], *loc.get("also_follows", [])]}
+    everything = candidates(model)
+    rows, evals = [], {}
+    nb = model.n_base
+
+    def run(batch, done, total):
+        for i, c in enumerate(batch):
+            e = evaluate(model, [c])
+            evals[c.label] = e
+            row = {"effect": c.label, "parameters": dict(zip(c.names, e["x"][nb:].tolist())),
+                   "sigma": dict(zip(c.names, e["sigma"][nb:].tolist())), **score(base, e, c.k)}
+            why = c.impossible(e["x"][nb:]) if c.impossible is not None else None
+            if why:
+                row.update(claimable=False, impossible=why)
+            rows.append(row)
+            if progress:
+                progress(done + i + 1, total + 1)
+
+    # locate before naming: a family's flexible members are fitted only where
+    # the residuals follow what they vary with, or a simple member already helps
+    simple = [c for c in everything if not c.flexible]
+    run(simple, 0, len(everything))
+    helped = {c.family_key for c, r in zip(simple, rows) if r["claimable"]}
+    flexible = [c for c in everything if c.flexible and (c.family_key in helped or seen & set(c.follows))]
+    run(flexible, len(simple), len(simple) + len(flexible))
+    cands = simple + flexible
+    not_tried = [c.label for c in everything if c.flexible and c not in flexible]
+    choose_members(rows, cands, evals)
     claimed, ambiguous = rank(rows, {k: e["heldout_r2"] for k, e in evals.items()})
     chosen = []
     tie = None
@@ -370,6 +353,10 @@ def diagnose(model, *, alpha: float = 0.01, progress=None, tie_breaker=None) -> 
                 chosen.append(best_pair[0])
                 ambiguous = [a for a in ambiguous if a != best_pair[0]]
                 evals["+".join(chosen)] = best_pair[1]
+    blocks = None
+    if chosen:
+        by = {c.label: c for c in cands}
+        blocks = block_check(model, [], [by[c] for c in chosen])
     final = evals["+".join(chosen)] if chosen else base
     r_after = model.whitened(final["effects"], final["x9"])
     tests_after = structure_tests(model, r_after, alpha)
@@ -388,7 +375,6 @@ def diagnose(model, *, alpha: float = 0.01, progress=None, tie_breaker=None) -> 
             found.append({"effect": label, "parameters": dict(zip(c.names, x.tolist())),
                           "sigma": dict(zip(c.names, s.tolist())), "units": dict(zip(c.names, c.units)),
                           "statement": c.describe(x, s), "physics": c.build(x).physics})
-    located = located_mismatches(model, None, b0, alpha)
     floor = model.noise_floor_px()
     rms_after = model.rms_px(final["effects"], final["x9"])
     adequacy = None
@@ -399,7 +385,9 @@ def diagnose(model, *, alpha: float = 0.01, progress=None, tie_breaker=None) -> 
                     "rms_ok": bool(rms_after <= ADEQUATE_RMS * floor),
                     "structure_left": [t["variable"] for t in tests_after if t["significant"]],
                     "remaining": remaining}
-        adequacy["adequate"] = bool(adequacy["rms_ok"] and not adequacy["structure_left"])
+        adequacy["time_blocks"] = blocks
+        adequacy["adequate"] = bool(adequacy["rms_ok"] and not adequacy["structure_left"]
+                                    and (blocks is None or blocks["passed"]))
         if not adequacy["adequate"]:
             partial, found = found, []
     verdict = _verdict(found, partial, ambiguous, located, adequacy, model.rms_px(None, b0), floor)
@@ -412,6 +400,7 @@ def diagnose(model, *, alpha: float = 0.01, progress=None, tie_breaker=None) -> 
         "effects": found,
         "partial": partial,
         "located": located,
+        "not_tried": not_tried,
         "adequacy": adequacy,
         "ambiguous_with": ambiguous if found else [],
         "candidates": rows,
@@ -451,6 +440,10 @@ def _verdict(found, partial, ambiguous, located, adequacy, rms_before, floor) ->
     if partial:
         left = adequacy["remaining"]
         what = "; ".join(describe(loc) for loc in left[:2]) or ", ".join(adequacy["structure_left"]) or "no structure"
+        blocks = adequacy.get("time_blocks")
+        if blocks is not None and not blocks["passed"]:
+            what += (f", and it does not predict time blocks it was not fitted on (held-out chi^2 "
+                     f"{blocks['base_chi2']:.0f} -> {blocks['with_chi2']:.0f})")
         return (f"located, not named: {where or 'residual above the noise'}. "
                 f"{' and '.join(f['effect'] for f in partial)} explains part of it (RMS {rms_before:.4f} -> "
                 f"{adequacy['rms_px_after']:.4f} px against a noise floor of {floor:.4f} px) but leaves {what}; "

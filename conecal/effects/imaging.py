@@ -41,17 +41,19 @@ class Imaging:
     scatter: float = 0.0
     radial_px: float = 0.0
     s_px: float = 0.0
+    warp: object = None        # a geometry.distortion.Distortion, on top of radial_px and s_px
 
     def add(self, **kw) -> "Imaging":
         return replace(self, **{k: getattr(self, k) + v for k, v in kw.items()})
 
     @property
     def distorted(self) -> bool:
-        return bool(self.radial_px or self.s_px)
+        return bool(self.radial_px or self.s_px or self.warp is not None)
 
     def displacement(self, xy, shape) -> np.ndarray:
         """Distortion displacement (..., 2) px at ideal pixel coordinates ``xy`` (..., 2)."""
-        return distortion_displacement(xy, shape, self.radial_px, self.s_px)
+        d = distortion_displacement(xy, shape, self.radial_px, self.s_px)
+        return d if self.warp is None else d + self.warp.displacement(xy)
 
     def distort(self, xy, shape) -> np.ndarray:
         """Where the detector records (..., 2) px what ideally falls at ``xy``."""
@@ -190,3 +192,20 @@ class DetectorDistortion(Effect):
         if not (np.isfinite(self.radial_px) and np.isfinite(self.s_px)):
             raise InputError("effect detector_distortion: radial_px and s_px must be finite")
         return world.replace(imaging=world.imaging.add(radial_px=self.radial_px, s_px=self.s_px))
+
+
+@dataclass(frozen=True, eq=False)
+class DetectorWarp(Effect):
+    """A detector distortion of any documented form (``geometry.distortion``):
+    radial k1..k3 about a free centre, tangential, S-shaped, or a polynomial
+    field. Not in the ``--effect`` registry (its parameters are a model)."""
+
+    distortion: object
+    name = "detector_distortion"
+    physics = DetectorDistortion.physics
+
+    def apply(self, world):
+        w = world.imaging.warp
+        if w is not None:
+            raise InputError("effect detector_distortion: one general warp at a time")
+        return world.replace(imaging=replace(world.imaging, warp=self.distortion))

@@ -237,3 +237,104 @@ class Backlash(Effect):
         true = world.true_readings.copy()
         true[:, k] = true[:, k] - 0.5 * self.amount * np.sign(v)
         return world.replace(true_readings=true)
+
+
+def time_basis(times, form: str, order: int, tau: float = 0.0) -> np.ndarray:
+    """(n, order) functions of time (s), each zero at the scan's start, for a
+    drift of the given ``form``:
+
+    ``poly``: ``s, s^2, ...`` with ``s = (t - t0) / duration``;
+    ``warmup``: ``1 - exp(-(t - t0) / tau)`` (``order`` 1; ``tau`` s), a tube or
+    mount settling after switch-on;
+    ``spline``: cubic B-splines on ``order - 3`` evenly spaced interior knots
+    (``order`` >= 3),
+    less their value at the start (the constant belongs to the geometry).
+    """
+    t = np.asarray(times, float)
+    t0, dur = float(t.min()), max(float(np.ptp(t)), 1e-9)
+    s = (t - t0) / dur
+    if form == "poly":
+        return np.column_stack([s ** (k + 1) for k in range(order)])
+    if form == "warmup":
+        if not tau > 0:
+            raise InputError(f"drift: a warm-up needs tau > 0 s, not {tau}")
+        return (1.0 - np.exp(-(t - t0) / tau))[:, None]
+    if form == "spline":
+        from scipy.interpolate import BSpline
+
+        n_inner = max(order - 3, 0)
+        knots = np.concatenate([[0.0] * 4, np.linspace(0, 1, n_inner + 2)[1:-1], [1.0] * 4])
+        B = BSpline.design_matrix(np.clip(s, 0, 1), knots, 3).toarray()   # (n, n_inner + 4)
+        B0 = BSpline.design_matrix(np.array([0.0]), knots, 3).toarray()
+        return (B - B0)[:, 1:]                                               # B_0 is the constant's share
+    raise InputError(f"drift: unknown form {form!r} (poly, warmup, spline)")
+
+
+@dataclass(frozen=True, eq=False)
+class DriftPath(Effect):
+    """The focal spot (``part="source"``) or the detector (``"detector"``)
+    moves along ``time_basis(form, order, tau) @ coefficients`` (mm; the
+    coefficients an (order, 3) array flattened, lab x, y, z). Families of
+    drift forms for ``diagnose``; not in the ``--effect`` registry."""
+
+    part: str = "source"
+    form: str = "poly"
+    order: int = 1
+    tau: float = 0.0
+    coefficients: tuple = (0.0, 0.0, 0.0)
+    name = "drift"
+    physics = ("the tube's focal spot or the detector's mount moves while they warm up or creep, smoothly "
+               "with time")
+
+    def offsets(self, times) -> np.ndarray:
+        C = np.asarray(self.coefficients, float).reshape(-1, 3)
+        return time_basis(times, self.form, self.order, self.tau) @ C
+
+    def apply(self, world):
+        d = self.offsets(world.times)
+        if self.part == "source":
+            return world.replace(source_offsets=world.source_offsets + d)
+        return world.replace(detector_offsets=world.detector_offsets + d)
+
+
+@dataclass(frozen=True, eq=False)
+class TiltSeriesRotaryAxis(RotaryAxis):
+    """A rotary axis whose direction tilts as a Fourier series of its angle:
+    at reading q it is turned by the small rotation vector
+    ``sum_k (a_k cos kq + b_k sin kq) e1 + (c_k cos kq + d_k sin kq) e2`` (rad),
+    ``coefficients`` (K, 4) rows ``(a_k, b_k, c_k, d_k)``. Order 1 holds a
+    precession in either sense (a cone) and a nod in any plane (a line)."""
+
+    coefficients: tuple = ()
+
+    def transforms(self, q_deg):
+        q = np.deg2rad(np.asarray(q_deg, dtype=float))
+        e1, e2 = orthonormal_complement(self.direction)
+        C = np.asarray(self.coefficients, float).reshape(-1, 4)
+        k = np.arange(1, len(C) + 1)
+        cs, sn = np.cos(q[..., None] * k), np.sin(q[..., None] * k)
+        t1 = cs @ C[:, 0] + sn @ C[:, 1]
+        t2 = cs @ C[:, 2] + sn @ C[:, 3]
+        d = (rotvec_to_matrix(t1[..., None] * e1 + t2[..., None] * e2) @ self.direction[:, None])[..., 0]
+        R = axis_angle(d, q)
+        t = self.point - (R @ self.point[:, None])[..., 0]
+        return RigidTransform(R, t)
+
+
+@dataclass(frozen=True, eq=False)
+class RotaryTiltSeries(Effect):
+    """The rotary axis direction tilts as a Fourier series of the angle
+    (``coefficients``: K rows of 4, deg; see :class:`TiltSeriesRotaryAxis`).
+    The wobble family of ``diagnose``; not in the ``--effect`` registry."""
+
+    axis: str = "theta"
+    coefficients: tuple = (0.0, 0.0, 0.0, 0.0)
+    name = "rotary_wobble"
+    physics = RotaryWobble.physics
+
+    def apply(self, world):
+        a = _axis(world, self.axis)
+        if not isinstance(a, RotaryAxis):
+            raise InputError(f"effect rotary_wobble: axis {self.axis!r} is not rotary")
+        w = TiltSeriesRotaryAxis(a.name, a.direction, a.point, coefficients=tuple(np.deg2rad(self.coefficients)))
+        return world.replace(chain=world.chain.replace_axis(self.axis, w))

@@ -1,0 +1,206 @@
+"""Detector distortion: where the detector records what ideally falls at a pixel.
+
+A distortion maps the ideal pinhole projection ``(c, r)`` (px) to the
+measured position ``(c + dc, r + dr)`` (SCAN_FORMAT.md, "Detector
+distortion"). Every model works in normalised coordinates about its own
+centre ``(c0, r0)`` (px): ``d = ((c, r) - (c0, r0)) / R``, ``R`` (px) a
+fixed normalising radius (the detector's half-diagonal by default), and
+every coefficient is a displacement in px at ``|d| = 1``, so coefficients
+of different models and detectors compare directly.
+
+Models (each linear in its coefficients for a fixed centre; ``basis``
+returns the design so that a fit can solve for them, or differentiate):
+
+``radial_tangential``
+    ``k1 rho^2 d + k2 rho^4 d + k3 rho^6 d`` (radial: pincushion > 0),
+    ``p1, p2`` Brown-Conrady decentring (tangential), and ``s rho^2 d_perp``
+    (S-shaped twist, counter-clockwise > 0, as a magnetic field bends an
+    image intensifier's electrons), about a centre that need not be the
+    principal point.
+``polynomial``
+    ``dc, dr`` each a polynomial in ``d`` of total degree 2..n (the affine
+    part is left out: a shift, scale, rotation or shear of the image is the
+    geometry's, not the distortion's: that is the gauge).
+
+Converters come in pairs (``to_dict``/``from_dict``) and are tested by
+round trips.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from ..errors import InputError
+
+RADIAL_TERMS = ("k1", "k2", "k3", "p1", "p2", "s")
+
+
+def default_radius(shape) -> float:
+    """Half the detector diagonal (px) for ``shape = (rows, cols)``."""
+    rows, cols = shape
+    return 0.5 * float(np.hypot(cols - 1, rows - 1))
+
+
+def detector_centre(shape) -> tuple[float, float]:
+    rows, cols = shape
+    return ((cols - 1) / 2.0, (rows - 1) / 2.0)
+
+
+def poly_terms(degree: int) -> list[tuple[int, int]]:
+    """Exponents ``(i, j)`` of ``x^i y^j`` with ``2 <= i + j <= degree``."""
+    return [(n - j, j) for n in range(2, degree + 1) for j in range(n + 1)]
+
+
+@dataclass(frozen=True, eq=False)
+class Distortion:
+    """One detector distortion (px). ``coefficients`` in the order of
+    ``names``; ``centre`` (c0, r0) px; ``radius`` px.
+
+    >>> d = Distortion.radial((300, 300), k1=1.0)
+    >>> bool(np.allclose(d.distort(d.undistort([[10.0, 20.0]])), [[10.0, 20.0]]))
+    True
+    """
+
+    model: str
+    centre: tuple
+    radius: float
+    coefficients: tuple
+    degree: int = 0
+    names: tuple = field(init=False)
+
+    def __post_init__(self):
+        if self.model == "radial_tangential":
+            names = RADIAL_TERMS
+        elif self.model == "polynomial":
+            if int(self.degree) < 2:
+                raise InputError(f"distortion: a polynomial needs degree >= 2, not {self.degree}")
+            names = tuple(f"{a}_x{i}y{j}" for a in ("dc", "dr") for i, j in poly_terms(int(self.degree)))
+        else:
+            raise InputError(f"distortion: unknown model {self.model!r} (radial_tangential, polynomial)")
+        c = np.asarray(self.centre, float)
+        k = np.asarray(self.coefficients, float)
+        if c.shape != (2,) or not np.isfinite(c).all():
+            raise InputError(f"distortion: centre must be two finite numbers (c0, r0) px, not {self.centre!r}")
+        if not (np.isfinite(self.radius) and self.radius > 0):
+            raise InputError(f"distortion: radius must be a positive number of px, not {self.radius!r}")
+        if k.shape != (len(names),) or not np.isfinite(k).all():
+            raise InputError(f"distortion {self.model}: needs {len(names)} finite coefficients ({', '.join(names)})")
+        object.__setattr__(self, "centre", (float(c[0]), float(c[1])))
+        object.__setattr__(self, "coefficients", tuple(float(v) for v in k))
+        object.__setattr__(self, "names", names)
+
+    # -- constructors -------------------------------------------------------
+    @classmethod
+    def radial(cls, shape, *, centre=None, radius=None, **coeffs) -> "Distortion":
+        """A ``radial_tangential`` distortion for a detector of ``shape``;
+        unnamed coefficients are zero."""
+        bad = set(coeffs) - set(RADIAL_TERMS)
+        if bad:
+            raise InputError(f"distortion: unknown radial_tangential terms {sorted(bad)}")
+        return cls("radial_tangential", centre if centre is not None else detector_centre(shape),
+                   radius or default_radius(shape), tuple(float(coeffs.get(n, 0.0)) for n in RADIAL_TERMS))
+
+    @classmethod
+    def polynomial(cls, shape, degree: int, coefficients=None, *, centre=None, radius=None) -> "Distortion":
+        n = 2 * len(poly_terms(degree))
+        return cls("polynomial", centre if centre is not None else detector_centre(shape),
+                   radius or default_radius(shape), tuple(np.zeros(n) if coefficients is None else coefficients),
+                   degree=degree)
+
+    def with_coefficients(self, coefficients, centre=None) -> "Distortion":
+        return Distortion(self.model, self.centre if centre is None else centre, self.radius, tuple(coefficients),
+                          self.degree)
+
+    # -- the map ------------------------------------------------------------
+    def _normalised(self, xy) -> np.ndarray:
+        return (np.asarray(xy, float) - np.asarray(self.centre)) / self.radius
+
+    def basis(self, xy) -> np.ndarray:
+        """(..., 2, n) px per unit coefficient: ``displacement = basis @ coefficients``."""
+        d = self._normalised(xy)
+        x, y = d[..., 0], d[..., 1]
+        if self.model == "radial_tangential":
+            r2 = x * x + y * y
+            cols = [np.stack([x * r2, y * r2], -1), np.stack([x * r2 ** 2, y * r2 ** 2], -1),
+                    np.stack([x * r2 ** 3, y * r2 ** 3], -1),
+                    np.stack([r2 + 2 * x * x, 2 * x * y], -1), np.stack([2 * x * y, r2 + 2 * y * y], -1),
+                    np.stack([-y * r2, x * r2], -1)]
+            return np.stack(cols, -1)
+        mono = np.stack([x ** i * y ** j for i, j in poly_terms(int(self.degree))], -1)
+        z = np.zeros_like(mono)
+        return np.stack([np.concatenate([mono, z], -1), np.concatenate([z, mono], -1)], -2)
+
+    def displacement(self, xy) -> np.ndarray:
+        """``(dc, dr)`` (..., 2) px at ideal positions ``xy`` (..., 2) px."""
+        return self.basis(xy) @ np.asarray(self.coefficients)
+
+    def distort(self, xy) -> np.ndarray:
+        """Measured position (..., 2) px of what ideally falls at ``xy``."""
+        xy = np.asarray(xy, float)
+        return xy + self.displacement(xy)
+
+    def undistort(self, xy, iterations: int = 8) -> np.ndarray:
+        """Ideal position of a measured ``xy``, by fixed-point iteration
+        (converges while the displacement's gradient is well below 1)."""
+        xy = np.asarray(xy, float)
+        x = xy.copy()
+        for _ in range(iterations):
+            x = xy - self.displacement(x)
+        return x
+
+    def centre_jacobian(self, xy, eps: float = 1e-3) -> np.ndarray:
+        """(..., 2, 2) d displacement / d centre (px/px), by central differences."""
+        out = []
+        for k in range(2):
+            c = np.array(self.centre)
+            c[k] += eps
+            hi = self.with_coefficients(self.coefficients, tuple(c)).displacement(xy)
+            c[k] -= 2 * eps
+            lo = self.with_coefficients(self.coefficients, tuple(c)).displacement(xy)
+            out.append((hi - lo) / (2 * eps))
+        return np.stack(out, -1)
+
+    def field(self, shape) -> tuple[np.ndarray, np.ndarray]:
+        """``dc, dr`` (rows, cols) float32 px at every pixel centre of the ideal image."""
+        rows, cols = shape
+        r, c = np.mgrid[0:rows, 0:cols].astype(float)
+        d = self.displacement(np.stack([c, r], -1))
+        return d[..., 0].astype(np.float32), d[..., 1].astype(np.float32)
+
+    # -- documents ----------------------------------------------------------
+    def to_dict(self, sigma=None) -> dict:
+        """The geometry's ``distortion`` entry (px); ``sigma``: 1σ of each coefficient."""
+        out = {"model": self.model, "centre": list(self.centre), "radius_px": self.radius,
+               "parameters": dict(zip(self.names, self.coefficients)),
+               "units": "px of displacement at the normalising radius; centre in px (column, row)"}
+        if self.model == "polynomial":
+            out["degree"] = int(self.degree)
+        if sigma is not None:
+            out["sigma"] = dict(zip(self.names, (float(s) for s in sigma)))
+        return out
+
+    @classmethod
+    def from_dict(cls, d: dict, where: str = "distortion") -> "Distortion":
+        if not isinstance(d, dict):
+            raise InputError(f"{where}: expected a mapping with model, centre, radius_px, parameters")
+        model = d.get("model")
+        try:
+            degree = int(d.get("degree", 0))
+            names = (RADIAL_TERMS if model == "radial_tangential" else
+                     tuple(f"{a}_x{i}y{j}" for a in ("dc", "dr") for i, j in poly_terms(degree)))
+            params = d["parameters"]
+            missing = [n for n in names if n not in params]
+            if missing:
+                raise InputError(f"{where}.parameters: missing {missing[0]!r}")
+            return cls(model, tuple(d["centre"]), float(d["radius_px"]), tuple(float(params[n]) for n in names),
+                       degree)
+        except KeyError as exc:
+            raise InputError(f"{where}: missing key {exc.args[0]!r}") from None
+        except (TypeError, ValueError) as exc:
+            raise InputError(f"{where}: {exc}") from None
+
+    def __repr__(self) -> str:
+        terms = ", ".join(f"{n}={v:+.4g}" for n, v in zip(self.names, self.coefficients) if v)
+        return f"Distortion({self.model}, centre=({self.centre[0]:.1f}, {self.centre[1]:.1f}), {terms or 'zero'})"
