@@ -33,11 +33,21 @@ POSES_FORMAT = "conecal-poses/1"
 @click.option("--initial", type=click.Choice(["log", "previous"]), default="log", show_default=True,
               help="Start each frame from the joint log, or from the previous frame's placement error.")
 @click.option("--use-flagged", is_flag=True, help="Also use truncated/overlapping/cluttered markers.")
+@click.option("--distortion", default="auto", show_default=True,
+              help="motion: free only: detector distortion family, 'auto' (chosen on held-out markers) or one of "
+                   "none, radial, radial+S, radial+S+tangential, 'radial+S per frame', polynomial3.")
 @click.option("--refine-geometry", is_flag=True,
               help="Refine the detector centre jointly with all poses (one bundle adjustment; the lab frame "
                    "stays that of --geometry).")
-def command(scan, markers, geometry, output, max_rms, prior_mm, prior_deg, initial, use_flagged, refine_geometry):
+def command(scan, markers, geometry, output, max_rms, prior_mm, prior_deg, initial, use_flagged, distortion,
+            refine_geometry):
     """Estimate the holder's pose (P_lab = R p_holder + t) in every frame of SCAN.
+
+    A motion: free scan (a C-arm or radiography set-up imaging a known
+    phantom at unlogged poses) is calibrated instead: identities from the
+    phantom's pattern, one bundle adjustment of all poses with the shared
+    sdd, principal point and detector distortion (family chosen on held-out
+    markers); see docs/free_pose.md.
 
     Spheres are identified against phantom.csv by id (not by the nearest
     point of the helix), starting from the robot's joint log through its DH
@@ -49,9 +59,17 @@ def command(scan, markers, geometry, output, max_rms, prior_mm, prior_deg, initi
     Examples:
       conecal fit-pose demo/robot --markers demo/robot_markers.json -o demo/poses.json
       conecal fit-pose scans/holder --markers m.json --geometry g.json --initial previous -o poses.json
+      conecal fit-pose demo/carm --markers demo/carm_markers.json -o demo/carm_poses.json
     """
     s = load_scan(scan)
     mdoc = read_markers(markers)
+    if s.config.motion == "free":
+        from .fit_pose_free import run_free
+
+        return run_free(s, scan, mdoc, markers, geometry, output, max_rms, distortion)
+    if distortion != "auto":
+        from ..errors import InputError
+        raise InputError("--distortion: only for motion: free scans")
     gdoc = read_json(geometry, "conecal-geometry") if geometry else None
     g = ConeGeometry.from_dict(gdoc) if gdoc else s.nominal_geometry()
     opt = PoseOptions(max_rms_px=max_rms, prior_mm=prior_mm, prior_deg=prior_deg)

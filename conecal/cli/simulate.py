@@ -50,13 +50,19 @@ def _system_of(scan_dir) -> dict:
 @click.option("--same-system-as", "same_as", type=click.Path(file_okay=False), default=None,
               help="A simulated scan directory whose true source, detector and nominal set-up to reuse "
                    "(linear and rotation only): two scans of one system.")
+@click.option("--phantom", type=click.Choice(["grid", "grid_marked", "balls"]), default=None,
+              help="Free only: a planar 5x5 grid, the grid without one corner sphere, or a 3-D ball phantom.")
+@click.option("--distortion", type=click.Choice(["intensifier", "none"]), default=None,
+              help="Free only: image-intensifier distortion (default) or none.")
+@click.option("--guess", default=None, metavar="DEG,MM",
+              help="Free only: write a rough pose guess (rx..tz) to log.csv, wrong by DEG degrees and MM mm.")
 @click.option("--overwrite", is_flag=True,
               help="Replace OUT if it is a scan directory that conecal simulate wrote (or empty). A directory "
                    "holding anything else, a link, the current directory or one of its parents is refused "
                    "(exit 2) and nothing is touched.")
 def command(kind, out, seed, frames, photons, blur_px, values, effects, dense_holder, trajectory, schedule, truncation,
-            misalignment, same_as, overwrite):
-    """Simulate a scan of KIND (linear | rotation | robot | circular) into OUT.
+            misalignment, same_as, phantom, distortion, guess, overwrite):
+    """Simulate a scan of KIND (linear | rotation | robot | circular | free) into OUT.
 
     Writes scan.yaml, log.csv, projections.tif (exact line integrals,
     supersampled pixels, blur, Poisson noise, sloped background) and
@@ -68,6 +74,7 @@ def command(kind, out, seed, frames, photons, blur_px, values, effects, dense_ho
       conecal simulate rotation demo/rot --frames 36 --effect rotary_wobble:amplitude=0.05
       conecal simulate robot demo/robot --seed 3 --dense-holder
       conecal simulate robot demo/arm --trajectory sweep --effect robot_deflection:compliance=0.002
+      conecal simulate free demo/carm --phantom grid_marked --guess 20,10
     """
     kw = {}
     if frames is not None:
@@ -100,6 +107,20 @@ def command(kind, out, seed, frames, photons, blur_px, values, effects, dense_ho
         if len(vals) != 5:
             raise InputError(f"--misalignment {misalignment}: expected five numbers U,V,ETA,THETA,PHI")
         kw["shift_px"], kw["rotation_deg"] = tuple(vals[:2]), tuple(vals[2:])
+    if (phantom or distortion or guess) and kind != "free":
+        raise InputError("--phantom, --distortion, --guess: only for free scans")
+    if phantom:
+        kw["phantom"] = phantom
+    if distortion:
+        kw["distortion"] = distortion
+    if guess is not None:
+        try:
+            vals = tuple(float(x) for x in guess.split(","))
+        except ValueError:
+            vals = ()
+        if len(vals) != 2 or min(vals) < 0:
+            raise InputError(f"--guess {guess}: expected two numbers DEG,MM >= 0")
+        kw["guess_error"] = vals
     if same_as is not None:
         if kind not in ("linear", "rotation"):
             raise InputError("--same-system-as: only for linear and rotation scans")

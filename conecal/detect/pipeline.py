@@ -141,9 +141,10 @@ def detect_scan(scan: Scan, opt: DetectOptions, *, workers: int = 2, lag: float 
         mus = np.array([b.mu_px for res in results for b in res])
     ref = float(np.median(mus)) if mus.size else 0.0
     results = [[b for b in res if b.mu_px >= opt.min_relative_contrast * ref] for res in results]
-    robot = scan.config.motion == "robot"
-    # A robot re-places the holder with mm-level jumps between frames, so image
-    # tracks are not identities there: fit-pose assigns phantom ids instead.
+    robot = scan.config.motion in ("robot", "free")
+    # A robot re-places the holder with mm-level jumps between frames, and free
+    # poses are unrelated, so image tracks are not identities there: fit-pose
+    # assigns phantom ids instead.
     ids, spans = track(results, predictor=kinematic_predictor(scan),
                        kinematic_first=scan.config.motion == "linear")
     frames = []

@@ -72,6 +72,9 @@ class World:
         if self.robot is not None:
             T = self.robot.transforms(self.true_readings)
             return T if self.placement is None else self.placement @ T
+        if self.chain is None:
+            # free poses (a C-arm's phantom): the placement is the whole pose
+            return self.placement
         return self.chain.transforms(self.true_readings)
 
     def replace(self, **kw) -> "World":

@@ -15,6 +15,8 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_valida
 from ..errors import FormatVersionError, InputError
 
 SCAN_FORMAT = "conecal-scan/1"
+# motion: free: rotation vector (deg) and translation (mm) of a rough pose guess
+POSE_GUESS_COLUMNS = ("rx", "ry", "rz", "tx", "ty", "tz")
 
 PositiveFloat = Annotated[float, Field(gt=0, allow_inf_nan=False)]
 Finite = Annotated[float, Field(allow_inf_nan=False)]
@@ -107,7 +109,7 @@ class RobotSpec(_Model):
 
 class ScanConfig(_Model):
     format: str
-    motion: Literal["linear", "rotation", "robot", "circular"]
+    motion: Literal["linear", "rotation", "robot", "circular", "free"]
     projections: str
     values: Literal["attenuation", "transmission", "raw"]
     flat: str | None = None
@@ -142,9 +144,19 @@ class ScanConfig(_Model):
         dup = sorted({n for n in names if names.count(n) > 1})
         if dup:
             raise ValueError(f"axis names must be unique, repeated: {dup}")
+        if self.motion == "free":
+            if self.axes or self.robot is not None:
+                raise ValueError("motion: free takes no 'axes' and no 'robot' (every frame's pose is unknown)")
+            if self.markers is None or self.markers.phantom is None:
+                raise ValueError("motion: free needs markers.phantom (the known phantom the poses are found from)")
         if self.motion in ("rotation", "circular") and not any(a.type == "rotary" for a in self.axes):
             raise ValueError(f"motion: {self.motion} needs a rotary axis")
         return self
+
+    @property
+    def optional_log_columns(self) -> list[str]:
+        """Log columns a scan may leave out: a free-pose scan's rough pose guess."""
+        return list(POSE_GUESS_COLUMNS) if self.motion == "free" else []
 
     @property
     def joint_names(self) -> list[str]:

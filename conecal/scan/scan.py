@@ -66,7 +66,7 @@ def load_scan(path: str | Path) -> Scan:
         raise InputError(f"{cfg_path}: file not found (a scan directory holds scan.yaml)")
     root = cfg_path.parent
     cfg = load_config(cfg_path)
-    log = read_log(root / cfg.log, cfg.joint_names)
+    log = read_log(root / cfg.log, cfg.joint_names, cfg.optional_log_columns)
 
     def _file(key, name):
         if name is None:

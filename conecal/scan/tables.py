@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import csv
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -51,6 +51,7 @@ class ScanLog:
     time: np.ndarray
     readings: np.ndarray
     names: tuple[str, ...]
+    extra: dict = field(default_factory=dict)
 
     def __len__(self) -> int:
         return len(self.frame)
@@ -59,19 +60,26 @@ class ScanLog:
         return self.readings[:, self.names.index(name)]
 
 
-def read_log(path: str | Path, names: list[str]) -> ScanLog:
-    """Read ``log.csv`` whose reading columns must be exactly ``names``."""
+def read_log(path: str | Path, names: list[str], optional: list[str] = ()) -> ScanLog:
+    """Read ``log.csv`` whose reading columns must be exactly ``names``;
+    ``optional`` columns may be present (all or none of them), and are
+    returned in ``extra``."""
     path = Path(path)
     header, rows = _read_csv(path)
     for required in ("frame", "time"):
         if required not in header:
             raise InputError(f"{path}: header: column {required!r} is missing")
-    extra = [h for h in header if h not in ("frame", "time") and h not in names]
-    if extra:
-        raise InputError(f"{path}: header: column {extra[0]!r} is not an axis in scan.yaml (axes: {', '.join(names)})")
+    unknown = [h for h in header if h not in ("frame", "time") and h not in names and h not in optional]
+    if unknown:
+        allowed = ", ".join(list(names) + list(optional)) or "none"
+        raise InputError(f"{path}: header: column {unknown[0]!r} is not an axis in scan.yaml (allowed: {allowed})")
     missing = [n for n in names if n not in header]
     if missing:
         raise InputError(f"{path}: header: column {missing[0]!r} for axis {missing[0]!r} is missing")
+    present = [h for h in optional if h in header]
+    if present and len(present) != len(optional):
+        gone = [h for h in optional if h not in header]
+        raise InputError(f"{path}: header: column {gone[0]!r} is missing (give all of {', '.join(optional)} or none)")
     if len(set(header)) != len(header):
         raise InputError(f"{path}: header: repeated column names")
     if not rows:
@@ -91,7 +99,8 @@ def read_log(path: str | Path, names: list[str]) -> ScanLog:
         i = int(back[0]) + 1
         raise InputError(f"{path}: line {i + 2}, column 'time': time goes backwards ({time[i]} after {time[i - 1]})")
     readings = np.column_stack([data[:, header.index(n)] for n in names]) if names else np.zeros((len(rows), 0))
-    return ScanLog(frame=frame, time=time, readings=readings, names=tuple(names))
+    extra = {h: data[:, header.index(h)] for h in present}
+    return ScanLog(frame=frame, time=time, readings=readings, names=tuple(names), extra=extra)
 
 
 @dataclass(frozen=True, eq=False)

@@ -8,7 +8,7 @@ All sizes in mm, angles in degrees at the edges.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -19,7 +19,7 @@ from ..kinematics import Chain, DHRobot, LinearAxis, RotaryAxis
 from ..consistency.misalignment import misaligned
 from .render import Cylinder, Ellipsoid, Sphere
 
-KINDS = ("linear", "rotation", "robot", "circular")
+KINDS = ("linear", "rotation", "robot", "circular", "free")
 
 
 @dataclass(eq=False)
@@ -46,6 +46,17 @@ class Scenario:
     fov_radius: float | None = None         # circular field of view, px
     jpeg_quality: int | None = None
     lag: float = 0.0                        # fraction of the previous frame left on the detector
+    frame_warps: list | None = None         # per-frame detector distortion (C-arm), on top of the world's
+
+    def imaging_at(self, k: int):
+        """How the detector records frame ``k``: the world's imaging, with the
+        frame's own distortion where it has one."""
+        im = self.world.imaging
+        if self.frame_warps is None or self.frame_warps[k] is None:
+            return im
+        if im.warp is not None:
+            raise ValueError("a per-frame distortion and a detector_distortion effect cannot be combined")
+        return replace(im, warp=self.frame_warps[k])
 
     @property
     def n_frames(self) -> int:
@@ -372,13 +383,14 @@ BUILDERS = {"linear": linear_raster, "rotation": rotation_scan, "robot": robot_h
 def marker_truth(sc: Scenario, k: int, T: RigidTransform) -> list[dict]:
     """Exact per-frame marker records: what ``detect`` should measure."""
     g = sc.frame_geometry(k)
+    im = sc.imaging_at(k)
     out = []
     rows, cols = g.shape
     for sid, p, r in zip(sc.sphere_ids, sc.sphere_positions, sc.sphere_radii):
         X = T.apply(p)
         # distortion moves the shadow as a whole to first order
-        cen = sc.world.imaging.distort(shadow_centroid(g, X, r), g.shape)
-        proj = sc.world.imaging.distort(g.project(X), g.shape)
+        cen = im.distort(shadow_centroid(g, X, r), g.shape)
+        proj = im.distort(g.project(X), g.shape)
         dpx = float(shadow_diameter_px(g, X, r))
         rad = dpx / 2
         inside = bool(rad <= cen[0] <= cols - 1 - rad and rad <= cen[1] <= rows - 1 - rad)

@@ -24,6 +24,7 @@ from .. import __version__
 from ..errors import InputError
 from ..jsonio import dumps
 from ..effects.imaging import beam_hardened
+from ..scan.config import POSE_GUESS_COLUMNS
 from .render import render_line_integrals
 from .scenarios import Scenario, marker_truth
 
@@ -36,7 +37,8 @@ def _umask() -> int:
     return mask
 
 
-def expose(sc: Scenario, line_integrals: np.ndarray, rng: np.random.Generator, previous_T: np.ndarray | None = None):
+def expose(sc: Scenario, line_integrals: np.ndarray, rng: np.random.Generator, previous_T: np.ndarray | None = None,
+           k: int = 0):
     """Turn line integrals into a transmission image as the detector records it.
 
     Background plate, beam hardening, focal-spot blur (Gaussian on the
@@ -46,7 +48,7 @@ def expose(sc: Scenario, line_integrals: np.ndarray, rng: np.random.Generator, p
     (transmission float64, noiseless transmission before lag for the next
     frame's lag).
     """
-    im = sc.world.imaging
+    im = sc.imaging_at(k)
     rows, cols = line_integrals.shape
     a0, gc, gr = sc.background
     a = line_integrals
@@ -113,8 +115,8 @@ def write_scan(sc: Scenario, out: str | Path, *, seed: int = 0, values: str = "a
             for k in range(sc.n_frames):
                 T = transforms[k]
                 g = sc.frame_geometry(k)
-                L = render_line_integrals(g, sc.solids(k, T), ss=sc.supersample, distortion=sc.world.imaging)
-                img, prev = expose(sc, L, rng, prev)
+                L = render_line_integrals(g, sc.solids(k, T), ss=sc.supersample, distortion=sc.imaging_at(k))
+                img, prev = expose(sc, L, rng, prev, k)
                 tw.write(_stored(img, values, sc.photons), contiguous=True, photometric="minisblack")
                 frames_truth.append({"frame": k, "R": T.R.tolist(), "t": T.t.tolist(),
                                      "source": g.source.tolist(), "markers": marker_truth(sc, k, T)})
@@ -126,8 +128,12 @@ def write_scan(sc: Scenario, out: str | Path, *, seed: int = 0, values: str = "a
             tifffile.imwrite(tmp / "flat.tif", np.full((rows, cols), sc.photons + DARK_LEVEL, np.float32))
             cfg["flat"], cfg["dark"] = "flat.tif", "dark.tif"
         (tmp / "scan.yaml").write_text(yaml.safe_dump(cfg, sort_keys=False), encoding="utf-8")
-        names = ([f"q{j + 1}" for j in range(sc.readings.shape[1])] if sc.kind == "robot"
-                 else [a["name"] for a in sc.config["axes"]])
+        if sc.kind == "robot":
+            names = [f"q{j + 1}" for j in range(sc.readings.shape[1])]
+        elif sc.kind == "free":
+            names = list(POSE_GUESS_COLUMNS[:sc.readings.shape[1]])
+        else:
+            names = [a["name"] for a in sc.config["axes"]]
         buf = io.StringIO()
         w = csv.writer(buf, lineterminator="\n")
         w.writerow(["frame", "time"] + names)
@@ -146,6 +152,9 @@ def write_scan(sc: Scenario, out: str | Path, *, seed: int = 0, values: str = "a
                  "spheres": [{"id": int(i), "position": p.tolist(), "diameter": float(2 * r)}
                              for i, p, r in zip(sc.sphere_ids, sc.sphere_positions, sc.sphere_radii)],
                  "frames": frames_truth, **sc.truth_extra}
+        if sc.frame_warps is not None:
+            for fr, w in zip(frames_truth, sc.frame_warps):
+                fr["distortion"] = None if w is None else w.to_dict()
         (tmp / "truth.json").write_text(dumps(truth), encoding="utf-8")
         os.chmod(tmp, 0o777 & ~_umask())
         _swap_into_place(tmp, out)

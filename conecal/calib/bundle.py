@@ -1,0 +1,283 @@
+"""One bundle adjustment: every frame's pose, the shared intrinsics and the
+detector distortion, from identified sphere centres.
+
+Measured centre of sphere ``p`` (phantom frame, mm) in frame k::
+
+    X = R_k p + t_k                                  (lab, mm)
+    q = project(X) + shadow_bias(X)                  (ideal pixel, px)
+    m = q + D(q)                                     (detector distortion, px)
+
+``R_k = exp(w_k) R0_k`` (``w_k`` a rotation vector about the lab axes,
+perturbing the start ``R0_k``). ``project`` has the shared intrinsics
+(``sdd`` mm, principal point ``c0, r0`` px); ``D`` is a
+:class:`~conecal.geometry.distortion.Distortion` whose free coefficients
+are shared, or per frame for those a family lists as such. The cone-beam
+shadow bias (a sphere's shadow centroid is not the projection of its
+centre) is evaluated at the start of each pass and held while the pose
+moves by fractions of a mm. Analytic Jacobians; the distortion's position
+and centre derivatives by central differences of its closed form.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from ..geometry import rotvec_to_matrix
+from ..geometry.cone import so3_left_jacobian
+from ..geometry.distortion import Distortion, default_radius, detector_centre
+from ..geometry.rotations import skew
+from ..geometry.sphere import shadow_bias
+from ..fit.core import FitResult, Parameter, solve
+from .camera import INTRINSICS, Camera
+
+POSE = ("rx", "ry", "rz", "tx", "ty", "tz")
+
+
+@dataclass(frozen=True)
+class Family:
+    """A distortion model: ``model`` (None: no distortion), the coefficients
+    it frees (shared), those it frees per frame, a free centre, a degree."""
+
+    name: str
+    model: str | None = None
+    shared: tuple = ()
+    per_frame: tuple = ()
+    free_centre: bool = False
+    degree: int = 0
+
+    @property
+    def k(self) -> int:
+        """Shared parameter count (the per-frame ones count once per frame)."""
+        return len(self.shared) + 2 * self.free_centre
+
+    def start(self, shape) -> Distortion | None:
+        if self.model is None:
+            return None
+        if self.model == "polynomial":
+            return Distortion.polynomial(shape, self.degree)
+        return Distortion.radial(shape)
+
+
+@dataclass
+class Observations:
+    """Identified centres: ``slot`` (N,) index of the frame in the bundle,
+    ``sph`` (N,) phantom point index, ``xy`` (N, 2) px, ``sigma`` (N,) px."""
+
+    slot: np.ndarray
+    sph: np.ndarray
+    xy: np.ndarray
+    sigma: np.ndarray
+
+    def subset(self, keep) -> "Observations":
+        return Observations(self.slot[keep], self.sph[keep], self.xy[keep], self.sigma[keep])
+
+    def __len__(self) -> int:
+        return len(self.slot)
+
+
+@dataclass
+class Bundle:
+    """A solved bundle: camera, distortion (shared part; None for none), per-frame
+    coefficient values for the family's per-frame terms (F, n), poses
+    R (F, 3, 3), t (F, 3) lab mm, residuals (N, 2) px, the fit."""
+
+    family: Family
+    camera: Camera
+    distortion: Distortion | None
+    per_frame: np.ndarray
+    R: np.ndarray
+    t: np.ndarray
+    residual_px: np.ndarray
+    fit: FitResult | None = None
+    covariance_scale: float = 1.0
+    names: list = field(default_factory=list)
+    slot: np.ndarray | None = None     # each residual's frame slot
+
+    def frame_distortion(self, slot: int) -> Distortion | None:
+        if self.distortion is None or not self.family.per_frame:
+            return self.distortion
+        k = list(self.distortion.coefficients)
+        for n, v in zip(self.family.per_frame, self.per_frame[slot]):
+            k[self.distortion.names.index(n)] = v
+        return self.distortion.with_coefficients(k)
+
+    def predict(self, points: np.ndarray, slot: np.ndarray, radius: float | None = None) -> np.ndarray:
+        """Measured position (N, 2) px of phantom points (N, 3) in frames ``slot``;
+        with ``radius`` (mm) the sphere shadow's centroid, else the point's."""
+        X = np.einsum("nij,nj->ni", self.R[slot], points) + self.t[slot]
+        q = self.camera.project(X)
+        if radius:
+            q = q + shadow_bias(self.camera.geometry(), X, radius, coarse=True)
+        return _distort(self, q, slot)
+
+    def sigma(self, name: str) -> float:
+        i = self.fit.names.index(name)
+        return float(self.fit.sigma[i] * np.sqrt(self.covariance_scale))
+
+
+def _distort(b: Bundle, q, slot):
+    if b.distortion is None:
+        return q
+    basis = b.distortion.basis(q)                        # (N, 2, n)
+    coef = np.tile(np.asarray(b.distortion.coefficients), (len(q), 1))
+    for j, n in enumerate(b.family.per_frame):
+        coef[:, b.distortion.names.index(n)] = b.per_frame[slot, j]
+    return q + np.einsum("nij,nj->ni", basis, coef)
+
+
+def adjust(family: Family, camera: Camera, obs: Observations, points: np.ndarray, radius: float,
+           R0: np.ndarray, t0: np.ndarray, start: Bundle | None = None, passes: int = 2,
+           max_nfev: int = 60) -> Bundle:
+    """Fit all poses, the intrinsics and ``family``'s distortion to ``obs``.
+
+    ``R0``, ``t0``: starting poses per slot; ``start``: a solved bundle whose
+    camera, distortion and poses to start from (same slots). Residuals are
+    whitened by ``obs.sigma``; the covariance is scaled by the reduced
+    chi-square when it exceeds 1 (``covariance_scale``), so that sigmas stay
+    honest when detect's sigmas are too small.
+    """
+    F = len(R0)
+    shape = camera.shape
+    dist = family.start(shape)
+    per = np.zeros((F, len(family.per_frame)))
+    if start is not None:
+        camera, R0, t0 = start.camera, start.R.copy(), start.t.copy()
+        if dist is not None and start.distortion is not None and start.distortion.model == dist.model:
+            dist = dist.with_coefficients(start.distortion.coefficients, start.distortion.centre)
+            # terms this family holds at zero stay at zero
+            keep = set(family.shared) | set(family.per_frame)
+            dist = dist.with_coefficients([v if n in keep else 0.0 for n, v in zip(dist.names, dist.coefficients)])
+            for j, n in enumerate(family.per_frame):
+                per[:, j] = start.per_frame[:, start.family.per_frame.index(n)] if n in start.family.per_frame \
+                    else dist.coefficients[dist.names.index(n)]
+    R0 = np.array(R0, float)
+    t0 = np.array(t0, float)
+    pts = points[obs.sph]
+    slot = obs.slot
+    N = len(obs)
+    # parameter layout
+    names = list(INTRINSICS)
+    values = list(camera.intrinsics())
+    scales = [1.0, 1.0, 1.0]
+    units = ["mm", "px", "px"]
+    if family.free_centre:
+        names += ["distortion_c0", "distortion_r0"]
+        values += list(dist.centre)
+        scales += [1.0, 1.0]
+        units += ["px", "px"]
+    i_coef = len(names)
+    names += [f"distortion_{n}" for n in family.shared]
+    values += [dist.coefficients[dist.names.index(n)] for n in family.shared]
+    scales += [0.1] * len(family.shared)
+    units += ["px"] * len(family.shared)
+    i_pose = len(names)
+    npf = 6 + len(family.per_frame)
+    for k in range(F):
+        names += [f"frame{k}_{n}" for n in POSE] + [f"frame{k}_distortion_{n}" for n in family.per_frame]
+        values += [0, 0, 0, *t0[k]] + list(per[k])
+        scales += [1e-3, 1e-3, 1e-3, 0.01, 0.01, 0.01] + [0.1] * len(family.per_frame)
+        units += ["rad"] * 3 + ["mm"] * 3 + ["px"] * len(family.per_frame)
+    shared_idx = [dist.names.index(n) for n in family.shared] if dist is not None else []
+    per_idx = [dist.names.index(n) for n in family.per_frame] if dist is not None else []
+    sig = obs.sigma[:, None]
+    bias = np.zeros((N, 2))
+
+    def unpack(x):
+        cam = camera.with_intrinsics(x[:3])
+        d = None
+        if dist is not None:
+            centre = tuple(x[3:5]) if family.free_centre else dist.centre
+            coef = np.array(dist.coefficients)
+            coef[shared_idx] = x[i_coef:i_coef + len(shared_idx)]
+            d = dist.with_coefficients(coef, centre)
+        blocks = x[i_pose:].reshape(F, npf)
+        Rk = np.array([rotvec_to_matrix(w) @ R for w, R in zip(blocks[:, :3], R0)])
+        return cam, d, blocks, Rk
+
+    def model(x, need_jac=False):
+        cam, d, blocks, Rk = unpack(x)
+        Rp = np.einsum("nij,nj->ni", Rk[slot], pts)
+        X = Rp + blocks[slot, 3:6]
+        q, JX, JK = cam.project_jacobians(X)
+        q = q + bias
+        if d is None:
+            m = q
+            A = None
+            basis = None
+        else:
+            basis = d.basis(q)
+            coef = np.tile(np.asarray(d.coefficients), (N, 1))
+            if per_idx:
+                coef[:, per_idx] = blocks[slot, 6:]
+            m = q + np.einsum("nij,nj->ni", basis, coef)
+            if need_jac:
+                eps = 1e-3
+                Jc = np.empty((N, 2, 2))
+                for a in range(2):
+                    c = np.array(d.centre)
+                    c[a] += eps
+                    hi = np.einsum("nij,nj->ni", d.with_coefficients(d.coefficients, tuple(c)).basis(q), coef)
+                    c[a] -= 2 * eps
+                    lo = np.einsum("nij,nj->ni", d.with_coefficients(d.coefficients, tuple(c)).basis(q), coef)
+                    Jc[:, :, a] = (hi - lo) / (2 * eps)
+                A = np.eye(2)[None] - Jc          # d m / d q
+        if not need_jac:
+            return m, None
+        J = np.zeros((N, 2, len(x)))
+        AJX = JX if A is None else A @ JX
+        J[:, :, :3] = JK if A is None else A @ JK
+        if family.free_centre:
+            J[:, :, 3:5] = Jc
+        for j, ci in enumerate(shared_idx):
+            J[:, :, i_coef + j] = basis[:, :, ci]
+        w = blocks[:, :3]
+        Jw = np.array([so3_left_jacobian(v) for v in w])
+        cols = i_pose + slot * npf
+        rows = np.arange(N)
+        JR = AJX @ (-skew(Rp) @ Jw[slot])
+        for a in range(3):
+            J[rows, :, cols + a] = JR[:, :, a]
+            J[rows, :, cols + 3 + a] = AJX[:, :, a]
+        for j, ci in enumerate(per_idx):
+            J[rows, :, cols + 6 + j] = basis[:, :, ci]
+        return m, J
+
+    params = [Parameter(n, v, scale=s, unit=u, undetermined_sigma=np.inf) for n, v, s, u in zip(names, values, scales, units)]
+    x = np.array(values, float)
+    fit = None
+    for _ in range(passes):
+        cam, d, blocks, Rk = unpack(x)
+        X = np.einsum("nij,nj->ni", Rk[slot], pts) + blocks[slot, 3:6]
+        bias[:] = shadow_bias(cam.geometry(), X, radius, coarse=True) if radius else 0.0
+        params = [Parameter(p.name, v, scale=p.scale, unit=p.unit, undetermined_sigma=np.inf) for p, v in zip(params, x)]
+        fit = solve(params, lambda x: ((model(x)[0] - obs.xy) / sig).ravel(),
+                    lambda x: (model(x, True)[1] / sig[:, :, None]).reshape(2 * N, -1), max_nfev=max_nfev, tol=1e-10)
+        x = fit.x
+    cam, d, blocks, Rk = unpack(x)
+    m, _ = model(x)
+    res = m - obs.xy
+    scale = max(1.0, fit.reduced_chi2) if np.isfinite(fit.reduced_chi2) else 1.0
+    return Bundle(family, cam, d, blocks[:, 6:].copy(), Rk, blocks[:, 3:6].copy(), res, fit, scale, names, slot.copy())
+
+
+FAMILIES = (
+    Family("none"),
+    Family("radial", "radial_tangential", ("k1", "k2"), free_centre=True),
+    Family("radial+S", "radial_tangential", ("k1", "k2", "s"), free_centre=True),
+    Family("radial+S+tangential", "radial_tangential", ("k1", "k2", "p1", "p2", "s"), free_centre=True),
+    Family("radial+S per frame", "radial_tangential", ("k1", "k2"), ("s",), free_centre=True),
+    Family("polynomial3", "polynomial", tuple(Distortion.polynomial((2, 2), 3).names), degree=3),
+)
+
+
+def family_named(name: str) -> Family:
+    for f in FAMILIES:
+        if f.name == name:
+            return f
+    raise KeyError(name)
+
+
+__all__ = ["Bundle", "Family", "FAMILIES", "Observations", "adjust", "family_named", "default_radius",
+           "detector_centre"]

@@ -1,0 +1,95 @@
+"""The fixed source-detector pair of a C-arm or radiography station.
+
+The lab frame of a free-pose calibration is the imaging system's own (a
+gauge: no stage defines another): the source at ``(0, 0, -sod)`` with the
+nominal ``sod``, the detector plane perpendicular to +z with ``u = +x``,
+``v = +y``, as in the contract's nominal geometry. What is estimated is the
+source-to-detector distance ``sdd`` (mm) and the principal point ``(c0,
+r0)`` (px, the foot of the perpendicular from the source); aspect and skew
+are those of the stated pixel pitch.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+
+import numpy as np
+
+from ..geometry import ConeGeometry
+
+INTRINSICS = ("sdd", "c0", "r0")
+
+
+@dataclass(frozen=True)
+class Camera:
+    """sdd (mm), principal point c0, r0 (px), nominal sod (mm; fixes the lab
+    origin only), pixel pitch (pu, pv) mm, shape (rows, cols)."""
+
+    sdd: float
+    c0: float
+    r0: float
+    sod: float
+    pitch: tuple
+    shape: tuple
+
+    @classmethod
+    def nominal(cls, geometry: ConeGeometry, sod: float) -> "Camera":
+        c0, r0 = geometry.principal_point
+        return cls(geometry.sdd, float(c0), float(r0), float(sod), tuple(geometry.pixel_pitch), tuple(geometry.shape))
+
+    @classmethod
+    def from_geometry(cls, geometry: ConeGeometry) -> "Camera":
+        """A geometry in this frame's convention (source on the z axis, detector
+        perpendicular to z, u = +x, v = +y)."""
+        return cls.nominal(geometry, float(-geometry.source[2]))
+
+    @property
+    def source(self) -> np.ndarray:
+        return np.array([0.0, 0.0, -self.sod])
+
+    @property
+    def focal_px(self) -> np.ndarray:
+        return np.array([self.sdd / self.pitch[0], self.sdd / self.pitch[1]])
+
+    def with_intrinsics(self, x) -> "Camera":
+        return replace(self, sdd=float(x[0]), c0=float(x[1]), r0=float(x[2]))
+
+    def intrinsics(self) -> np.ndarray:
+        return np.array([self.sdd, self.c0, self.r0])
+
+    def geometry(self) -> ConeGeometry:
+        """The ideal (pinhole) ConeGeometry, lab frame."""
+        pu, pv = self.pitch
+        origin = np.array([-self.c0 * pu, -self.r0 * pv, self.sdd - self.sod])
+        return ConeGeometry(source=self.source, detector_origin=origin, u=(1, 0, 0), v=(0, 1, 0),
+                            pixel_pitch=self.pitch, shape=self.shape)
+
+    def matrix(self) -> np.ndarray:
+        """3x3 K mapping source-centred lab directions to homogeneous (c, r, 1)."""
+        f = self.focal_px
+        return np.array([[f[0], 0, self.c0], [0, f[1], self.r0], [0, 0, 1.0]])
+
+    def project(self, X) -> np.ndarray:
+        """Ideal pixel (c, r) of lab points (..., 3) -> (..., 2)."""
+        d = np.asarray(X, float) - self.source
+        return np.stack([self.c0 + self.focal_px[0] * d[..., 0] / d[..., 2],
+                         self.r0 + self.focal_px[1] * d[..., 1] / d[..., 2]], -1)
+
+    def project_jacobians(self, X) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Projections (N, 2), d/dX (N, 2, 3) px/mm and d/d(sdd, c0, r0) (N, 2, 3)."""
+        d = np.asarray(X, float) - self.source
+        f = self.focal_px
+        iz = 1.0 / d[:, 2]
+        xn, yn = d[:, 0] * iz, d[:, 1] * iz
+        p = np.stack([self.c0 + f[0] * xn, self.r0 + f[1] * yn], -1)
+        JX = np.zeros((len(d), 2, 3))
+        JX[:, 0, 0] = f[0] * iz
+        JX[:, 0, 2] = -f[0] * xn * iz
+        JX[:, 1, 1] = f[1] * iz
+        JX[:, 1, 2] = -f[1] * yn * iz
+        JK = np.zeros((len(d), 2, 3))
+        JK[:, 0, 0] = xn / self.pitch[0]
+        JK[:, 1, 0] = yn / self.pitch[1]
+        JK[:, 0, 1] = 1.0
+        JK[:, 1, 2] = 1.0
+        return p, JX, JK

@@ -1,0 +1,119 @@
+"""The ``conecal-poses/1`` document of a free-pose calibration.
+
+Stated sigmas combine the bundle's statistical sigma (scaled by the
+reduced chi-square when that exceeds 1) with the model's: the spread of
+the estimate over the distortion families the held-out markers cannot
+tell from the chosen one (a decentring term and the principal point, for
+one, trade off on a planar grid). ``sigma = hypot(statistical, model)``.
+"""
+
+from __future__ import annotations
+
+from collections import Counter
+
+import numpy as np
+
+from ..geometry import matrix_to_rotvec
+from .bundle import Bundle
+from .run import FreeOptions, FreeResult
+
+GAUGE = ("lab frame = the imaging system's: source at (0, 0, -sod) with the nominal sod, detector plane "
+         "perpendicular to +z with u = +x, v = +y (no stage defines another frame); aspect and skew fixed by the "
+         "stated pixel pitch; distortion without an affine part (a shift, scale or rotation of the image belongs "
+         "to the principal point, sdd and poses)")
+
+
+def _tied(res: FreeResult) -> list[Bundle]:
+    out = []
+    for row in res.choice:
+        if row.get("chosen") or "behind_chosen_chi2" not in row:
+            continue
+        if row["behind_chosen_chi2"] < max(3.0, 2 * row["behind_se"]):
+            out.append(res.fits[row["family"]])
+    return out
+
+
+def _combine(stat: float, spreads: list) -> tuple[float, float]:
+    model = float(np.sqrt(np.mean(np.square(spreads)))) if spreads else 0.0
+    return float(np.hypot(stat, model)), model
+
+
+def free_document(res: FreeResult, opt: FreeOptions, header: dict) -> dict:
+    b = res.bundle
+    tied = _tied(res)
+    intr = {}
+    for name, unit, get in (("sdd", "mm", lambda x: x.camera.sdd), ("c0", "px", lambda x: x.camera.c0),
+                            ("r0", "px", lambda x: x.camera.r0)):
+        total, model = _combine(b.sigma(name), [get(t) - get(b) for t in tied])
+        intr[name] = {"value": get(b), "sigma": total, "sigma_statistical": b.sigma(name), "sigma_model": model,
+                      "unit": unit}
+    dist = None
+    if b.distortion is not None:
+        names = [f"distortion_{n}" for n in b.distortion.names]
+        sig = [b.sigma(n) if n in b.fit.names else 0.0 for n in names]
+        dist = b.distortion.to_dict(sig)
+        dist["family"] = b.family.name
+        if b.family.free_centre:
+            dist["centre_sigma"] = [b.sigma("distortion_c0"), b.sigma("distortion_r0")]
+        if b.family.per_frame:
+            dist["per_frame"] = list(b.family.per_frame)
+        c, r = np.mgrid[0:b.camera.shape[0]:16, 0:b.camera.shape[1]:16]
+        d = b.distortion.displacement(np.stack([r, c], -1).astype(float))
+        dist["max_displacement_px"] = float(np.hypot(d[..., 0], d[..., 1]).max())
+    none = res.fits.get("none")
+    frames = []
+    for fr in res.frames:
+        s = fr.get("slot")
+        out = {"frame": fr["frame"], "status": fr["status"]}
+        best = fr["search"].best
+        R, t = (b.R[s], b.t[s]) if s is not None and fr["status"] != "rejected" and s < len(b.R) else \
+            ((best.R, best.t) if best is not None else (np.eye(3), np.zeros(3)))
+        out["R"], out["t"] = R, t
+        if s is not None and s < len(b.R):
+            rot_stat = np.degrees([b.sigma(f"frame{s}_{n}") for n in ("rx", "ry", "rz")])
+            tr_stat = np.array([b.sigma(f"frame{s}_{n}") for n in ("tx", "ty", "tz")])
+            rot_sp = [np.degrees(matrix_to_rotvec(x.R[s] @ b.R[s].T)) for x in tied]
+            tr_sp = [x.t[s] - b.t[s] for x in tied]
+            out["sigma_rotation_deg"] = [_combine(rot_stat[i], [v[i] for v in rot_sp])[0] for i in range(3)]
+            out["sigma_translation_mm"] = [_combine(tr_stat[i], [v[i] for v in tr_sp])[0] for i in range(3)]
+            d, p = fr["pairs"]
+            out["rms_px"] = fr.get("rms_px")
+            if none is not None and s < len(none.R):
+                sel = np.flatnonzero(_slot_mask(none, s))
+                out["rms_px_pinhole"] = float(np.sqrt(np.mean(np.sum(none.residual_px[sel] ** 2, 1))))
+            out["n_spheres"] = int(len(p))
+            out["sphere_ids"] = [int(res.shape.ids[j]) for j in p]
+            out["matched"] = [[int(i), int(res.shape.ids[j])] for i, j in zip(d, p)]
+            if fr.get("set_aside"):
+                out["set_aside"] = fr["set_aside"]
+            if b.family.per_frame and b.distortion is not None:
+                out["distortion"] = b.frame_distortion(s).to_dict()
+        if fr["search"].convention:
+            out["convention"] = fr["search"].convention
+        if "mirror_delta_chi2" in fr:
+            out["mirror_delta_chi2"] = fr["mirror_delta_chi2"]
+        frames.append(out)
+    reasons = Counter(f["status"].split(":")[0] for f in frames)
+    ok_res = [np.sum(b.residual_px[_slot_mask(b, f.get("slot"))] ** 2, 1) for f in res.frames
+              if f["status"] == "ok" and f.get("slot") is not None]
+    rms = float(np.sqrt(np.mean(np.concatenate(ok_res)))) if ok_res else float("nan")
+    geo = b.camera.geometry().to_dict()
+    doc = {**header, "motion": "free", **geo, "axes": [], "intrinsics": intr, "distortion": dist,
+           "gauge": GAUGE, "distortion_choice": res.choice,
+           "phantom": {"planar": bool(res.shape.planar), "lattice": res.shape.lattice is not None,
+                       "symmetries": len(res.shape.symmetries)},
+           "units": {"t": "mm", "R": "rotation matrix, P_lab = R p_phantom + t", "rms_px": "px",
+                     "sigma_rotation_deg": "deg (rotation vector components, lab axes)",
+                     "sigma_translation_mm": "mm", "intrinsics": "sdd mm; c0, r0 px (principal point)"},
+           "options": {"max_rms_px": opt.max_rms_px, "floor_factor": opt.floor_factor,
+                       "outlier_factor": opt.outlier_factor, "distortion": opt.distortion, "folds": opt.folds},
+           "summary": {"frames": len(frames), "ok": reasons.get("ok", 0), "ambiguous": reasons.get("ambiguous", 0),
+                       "rejected": reasons.get("rejected", 0),
+                       "reasons": dict(Counter(f["status"] for f in frames if f["status"] != "ok")),
+                       "rms_px": rms, "chi2_reduced": b.fit.reduced_chi2},
+           "frames": frames}
+    return doc
+
+
+def _slot_mask(b: Bundle, s) -> np.ndarray:
+    return b.slot == s

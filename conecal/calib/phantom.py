@@ -1,0 +1,115 @@
+"""What a calibration phantom's pattern offers for identification.
+
+A planar phantom whose spheres sit on a lattice (a grid) is identified by
+growing the lattice in the image; its own symmetries (the lattice maps that
+carry the set of spheres onto itself, rigid in 3-D: a square grid turned
+by 90 deg or seen from behind) are found here, so that two labellings they
+relate are known to give the same calibration. Any other phantom is
+identified by a pose search (``search.py``).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from itertools import product
+
+import numpy as np
+
+# the eight signed permutations of the lattice axes (a square lattice's point group)
+LATTICE_MAPS = tuple(np.array(m) for m in
+                     ([[a, 0], [0, b]] for a, b in product((1, -1), repeat=2)))
+LATTICE_MAPS = LATTICE_MAPS + tuple(np.array(m) for m in ([[0, a], [b, 0]] for a, b in product((1, -1), repeat=2)))
+
+
+@dataclass(frozen=True, eq=False)
+class PhantomShape:
+    """points (n, 3) mm in the phantom frame; ids (n,); ``planar``: all in one
+    plane (``origin``, in-plane unit vectors ``e1``, ``e2``, normal ``n``);
+    ``lattice`` (n, 2) integer coordinates along ``basis`` (2, 2) mm in the
+    (e1, e2) plane, or None; ``symmetries``: lattice maps (M, o) with
+    ``M @ ij + o`` carrying the phantom's lattice onto itself rigidly."""
+
+    points: np.ndarray
+    ids: np.ndarray
+    planar: bool
+    origin: np.ndarray
+    e1: np.ndarray
+    e2: np.ndarray
+    n: np.ndarray
+    lattice: np.ndarray | None = None
+    basis: np.ndarray | None = None
+    symmetries: list = field(default_factory=list)
+
+    @property
+    def plane_xy(self) -> np.ndarray:
+        """(n, 2) mm: the points in the (e1, e2) plane coordinates."""
+        q = self.points - self.origin
+        return np.column_stack([q @ self.e1, q @ self.e2])
+
+    @property
+    def spacing_mm(self) -> float:
+        d = np.linalg.norm(self.points[:, None] - self.points[None], axis=-1)
+        d[d == 0] = np.inf
+        return float(np.median(d.min(1)))
+
+    def lattice_index(self) -> dict:
+        return {tuple(int(v) for v in ij): k for k, ij in enumerate(self.lattice)}
+
+
+def describe_phantom(points, ids, plane_tol_mm: float = 0.05, lattice_tol: float = 0.05) -> PhantomShape:
+    """Classify a phantom's sphere positions (mm, phantom frame)."""
+    P = np.asarray(points, float)
+    origin = P.mean(0)
+    _, s, Vt = np.linalg.svd(P - origin)
+    e1, e2, n = Vt
+    if np.linalg.det(Vt) < 0:
+        n = -n
+    planar = len(P) >= 4 and float(np.abs((P - origin) @ n).max()) <= plane_tol_mm
+    shape = PhantomShape(P, np.asarray(ids), planar, origin, e1, e2, n)
+    if not planar:
+        return shape
+    q = shape.plane_xy
+    diffs = (q[:, None] - q[None]).reshape(-1, 2)
+    length = np.hypot(diffs[:, 0], diffs[:, 1])
+    diffs, length = diffs[length > 1e-6], length[length > 1e-6]
+    order = np.argsort(length)
+    a = diffs[order[0]]
+    b = next((diffs[i] for i in order if abs(np.cross(a, diffs[i])) > 0.3 * length[order[0]] * length[i]), None)
+    if b is None:
+        return shape
+    B = np.column_stack([a, b])
+    ij = np.linalg.solve(B, (q - q[0]).T).T
+    if np.abs(ij - np.round(ij)).max() > lattice_tol:
+        return shape
+    ij = np.round(ij).astype(int)
+    ij -= ij.min(0)
+    return PhantomShape(P, shape.ids, True, origin, e1, e2, n, ij, B, _symmetries(ij, B))
+
+
+def _symmetries(ij: np.ndarray, B: np.ndarray) -> list:
+    """Lattice maps (M, o), not the identity, that carry the set ``ij`` onto
+    itself and preserve distances (with the lattice ``basis`` B)."""
+    G = B.T @ B
+    have = {tuple(v) for v in ij}
+    out = []
+    for M in LATTICE_MAPS:
+        if not np.allclose(M.T @ G @ M, G, rtol=1e-3, atol=1e-6 * np.abs(G).max()):
+            continue
+        m = ij @ M.T
+        o = ij.min(0) - m.min(0)
+        if {tuple(v) for v in m + o} == have and not (np.array_equal(M, np.eye(2)) and not o.any()):
+            out.append((M, o))
+    return out
+
+
+def symmetry_name(M: np.ndarray, B: np.ndarray) -> str:
+    """A rigid 3-D description of a lattice map: a turn about the normal, or a
+    half turn about an in-plane line (the plane seen from behind)."""
+    A = B @ M @ np.linalg.inv(B)    # the map in plane coordinates (mm)
+    if np.linalg.det(A) > 0:
+        ang = np.degrees(np.arctan2(A[1, 0], A[0, 0]))
+        return f"turned {ang:+.0f} deg about the phantom's normal"
+    w, V = np.linalg.eig(A)
+    axis = np.real(V[:, np.argmin(np.abs(w - 1))])
+    ang = np.degrees(np.arctan2(axis[1], axis[0])) % 180
+    return f"seen from behind (half turn about the in-plane line at {ang:.0f} deg)"

@@ -1,0 +1,244 @@
+"""``fit-pose`` on a ``motion: free`` scan: search, bundle, distortion choice, status.
+
+1. Every frame's spheres are identified from the pattern (``search.py``),
+   with the log's rough pose guess when it has one.
+2. The identified frames are bundle-adjusted together (``bundle.py``) for
+   every distortion family; spheres the search missed are picked up at
+   the bundle's prediction, and markers whose residual is far beyond the
+   scan's noise floor are set aside (fit-pose judges markers by its own
+   residuals, not by detect's flags alone).
+3. The family is chosen on held-out markers (``choose.py``); the chosen
+   bundle is refitted.
+4. A frame is ``ok`` only with a unique identity and a residual at the
+   noise floor (RMS within ``floor_factor`` of the scan's pooled RMS and
+   below ``max_rms_px``); a planar phantom's mirror pose that fits as well
+   makes it ``ambiguous``. Rejected frames leave the bundle, which is
+   solved again without them.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..errors import FitError
+from ..geometry import rotvec_to_matrix
+from .bundle import FAMILIES, Bundle, Observations, adjust, family_named
+from .camera import Camera
+from .choose import choose_family
+from .phantom import describe_phantom
+from .search import SearchOptions, assign, refine_pose, search_frame
+
+
+@dataclass(frozen=True)
+class FreeOptions:
+    """max_rms_px: a frame above this RMS is rejected; floor_factor: a frame's
+    RMS may exceed the scan's pooled RMS by this factor; outlier_factor: a
+    marker beyond this many pooled RMS is set aside; distortion: 'auto'
+    (chosen on held-out markers) or a family name; folds: held-out groups;
+    mirror_chi2: a mirror pose within this chi-square of the fit ties."""
+
+    max_rms_px: float = 1.0
+    floor_factor: float = 2.5
+    outlier_factor: float = 5.0
+    distortion: str = "auto"
+    folds: int = 5
+    mirror_chi2: float = 25.0
+    search: SearchOptions = SearchOptions()
+
+
+@dataclass
+class FreeResult:
+    camera: Camera
+    bundle: Bundle | None
+    frames: list          # per frame dict (frame, status, R, t, ...)
+    choice: list          # rows of the distortion choice
+    shape: object
+    convention: str
+    fits: dict            # family name -> bundle on the final frames
+
+
+def _detections(frame: dict):
+    ms = frame["markers"]
+    xy = np.array([[m["x"], m["y"]] for m in ms], float).reshape(-1, 2)
+    sig = np.array([m.get("sigma") or 0.05 for m in ms], float)
+    return xy, np.maximum(sig, 1e-3)
+
+
+def _guesses(scan):
+    extra = scan.log.extra
+    if not extra:
+        return None
+    W = np.deg2rad(np.column_stack([extra["rx"], extra["ry"], extra["rz"]]))
+    T = np.column_stack([extra["tx"], extra["ty"], extra["tz"]])
+    return [(rotvec_to_matrix(w), t) for w, t in zip(W, T)]
+
+
+def calibrate_free(scan, markers: dict, geometry, opt: FreeOptions = FreeOptions(), progress=None,
+                   say=lambda s: None) -> FreeResult:
+    """Calibrate ``scan`` (motion: free) from ``markers`` (conecal-markers/1);
+    ``geometry``: the starting (nominal) ConeGeometry in the free-pose lab
+    frame. ``progress(done, total)``, ``say(line)``: feedback."""
+    cam = Camera.nominal(geometry, scan.config.nominal.sod)
+    shape = describe_phantom(scan.phantom.positions, scan.phantom.ids)
+    radius = scan.config.markers.diameter / 2
+    guesses = _guesses(scan)
+    by_frame = {int(f["frame"]): f for f in markers["frames"]}
+    frames = []
+    dets = {}
+    order = [int(k) for k in scan.log.frame]
+    for n, k in enumerate(order):
+        f = by_frame.get(k, {"markers": []})
+        xy, sig = _detections(f)
+        dets[k] = (xy, sig)
+        res = search_frame(cam, shape, xy, guesses[n] if guesses else None, opt.search)
+        frames.append({"frame": k, "search": res, "status": res.status})
+        if progress:
+            progress(n + 1, len(order))
+    usable = [fr for fr in frames if fr["status"] == "ok"]
+    say(f"identified {len(usable)}/{len(frames)} frames from the pattern")
+    if len(usable) < 2:
+        reasons = sorted({fr["status"] for fr in frames})
+        raise FitError(f"{len(usable)} of {len(frames)} frames identified; a calibration needs 2 or more "
+                       f"(first reason: {reasons[0] if reasons else 'no frames'})")
+    fams = FAMILIES if opt.distortion == "auto" else (family_named("none"), family_named(opt.distortion))
+    for attempt in range(6):
+        obs, fits, usable = _fit_families(fams, cam, usable, dets, shape, radius, opt)
+        if opt.distortion == "auto":
+            chosen, choice = choose_family(fits, obs, shape.points, radius, opt.folds)
+        else:
+            chosen, choice = family_named(opt.distortion), [{"family": opt.distortion, "chosen": True,
+                                                             "why": "named by --distortion"}]
+        final = fits[chosen.name]
+        if not _judge(final, usable, obs, opt):
+            break
+        usable = [fr for fr in usable if fr["status"] == "ok"]
+        if len(usable) < 2:
+            raise FitError("fewer than 2 frames left at the noise floor")
+    else:
+        raise FitError("frames kept being rejected after 6 bundle adjustments; the model does not fit this scan")
+    _mirrors(final, usable, obs, shape, radius, opt)
+    conv = sorted({fr["search"].convention for fr in frames if fr["search"].convention})
+    return FreeResult(final.camera, final, frames, choice, shape, "; ".join(conv), fits)
+
+
+def _fit_families(fams, cam, usable, dets, shape, radius, opt):
+    """Bundle every family on ``usable`` frames: from the search's poses, then
+    again after re-gathering markers at the most flexible fit's prediction."""
+    obs, slots = _observations(usable, dets)
+    R0 = np.array([fr["search"].best.R for fr in usable])
+    t0 = np.array([fr["search"].best.t for fr in usable])
+    base = adjust(family_named("none"), cam, obs, shape.points, radius, R0, t0)
+    fits = {"none": base}
+    for fam in fams[1:]:
+        fits[fam.name] = adjust(fam, cam, obs, shape.points, radius, R0, t0, start=base)
+    flexible = min(fits.values(), key=lambda b: float(np.mean(np.sum(b.residual_px ** 2, 1))))
+    obs, kept = _regather(flexible, usable, dets, shape, radius, opt)
+    idx = [slots[fr["frame"]] for fr in kept]
+    R0, t0 = flexible.R[idx], flexible.t[idx]
+    fits = {"none": adjust(family_named("none"), cam, obs, shape.points, radius, R0, t0)}
+    for fam in fams[1:]:
+        fits[fam.name] = adjust(fam, cam, obs, shape.points, radius, R0, t0, start=fits["none"])
+    for s, fr in enumerate(kept):
+        fr["slot"] = s
+    return obs, fits, kept
+
+
+def _observations(usable, dets):
+    slot, sph, xy, sig = [], [], [], []
+    slots = {}
+    for s, fr in enumerate(usable):
+        slots[fr["frame"]] = s
+        c = fr.get("pairs") or (fr["search"].best.det, fr["search"].best.sph)
+        d, p = c
+        X, S = dets[fr["frame"]]
+        slot += [s] * len(d)
+        sph += list(p)
+        xy.append(X[d])
+        sig.append(S[d])
+    return (Observations(np.array(slot), np.array(sph), np.vstack(xy), np.concatenate(sig)), slots)
+
+
+def _regather(b: Bundle, usable, dets, shape, radius, opt: FreeOptions):
+    """Re-assign every frame's detections at the bundle's prediction, within
+    ``outlier_factor`` pooled RMS (at least 0.5 px): picks up spheres the
+    search missed, sets aside markers the model cannot explain."""
+    pooled = float(np.sqrt(np.mean(np.sum(b.residual_px ** 2, 1))))
+    gate = max(0.5, opt.outlier_factor * pooled)
+    for s, fr in enumerate(usable):
+        X, _ = dets[fr["frame"]]
+        pts = shape.points
+        pred = b.predict(pts, np.full(len(pts), s), radius)
+        p, d = assign(pred, X, gate)
+        fr["pairs"] = (d, p)
+        fr["set_aside"] = int(len(fr["search"].best.det) - len(np.intersect1d(d, fr["search"].best.det)))
+    keep = [fr for fr in usable if len(fr["pairs"][0]) >= opt.search.min_spheres]
+    for fr in usable:
+        if fr not in keep:
+            fr["slot"] = None
+            fr["status"] = f"rejected: {len(fr['pairs'][0])} markers within {gate:.2f} px of the bundle's prediction"
+    obs, _ = _observations(keep, dets)
+    return obs, keep
+
+
+def _judge(b: Bundle, usable, obs: Observations, opt: FreeOptions) -> bool:
+    """Per-frame RMS against the scan's pooled RMS; returns whether any frame
+    was rejected (then the bundle is solved again without it)."""
+    r2 = np.sum(b.residual_px ** 2, 1)
+    per = np.array([np.sqrt(np.mean(r2[obs.slot == s])) for s in range(len(usable))])
+    pooled = float(np.median(per))
+    limit = min(opt.max_rms_px, opt.floor_factor * pooled)
+    dropped = False
+    for s, fr in enumerate(usable):
+        fr["rms_px"] = float(per[s])
+        fr["slot"] = s
+        if per[s] > limit:
+            fr["slot"] = None
+            fr["status"] = (f"rejected: residual {per[s]:.3f} px RMS, above {limit:.3f} px "
+                            f"({opt.floor_factor:g}x the scan's median frame RMS {pooled:.3f} px"
+                            f"{', capped by --max-rms' if limit == opt.max_rms_px else ''})")
+            dropped = True
+    return dropped
+
+
+def _mirrors(b: Bundle, usable, obs: Observations, shape, radius, opt: FreeOptions) -> None:
+    """A planar phantom's second pose: its normal reflected about the line of
+    sight through its centre. If that pose, refitted with the final camera
+    and distortion, explains the frame within ``mirror_chi2``, the frame is
+    ambiguous."""
+    if not shape.planar:
+        return
+    pooled = float(np.sqrt(np.mean(np.sum(b.residual_px ** 2, 1)) / 2))
+    cam = b.camera
+    for s, fr in enumerate(usable):
+        if fr["status"] != "ok":
+            continue
+        sel = obs.slot == s
+        P = shape.points[obs.sph[sel]]
+        dist = b.frame_distortion(s)
+        xy = obs.xy[sel] if dist is None else dist.undistort(obs.xy[sel])
+        R, t = b.R[s], b.t[s]
+        c = R @ shape.origin + t
+        v = (c - cam.source) / np.linalg.norm(c - cam.source)
+        n = R @ shape.n
+        n2 = 2 * (n @ v) * v - n
+        axis = np.cross(n, n2)
+        if np.linalg.norm(axis) < 1e-9:
+            continue
+        ang = np.arctan2(np.linalg.norm(axis), n @ n2)
+        Q = rotvec_to_matrix(axis / np.linalg.norm(axis) * ang)
+        R2 = Q @ R
+        t2 = c - R2 @ shape.origin
+        R2, t2, res2 = refine_pose(cam, P, xy, R2, t2, f_scale=50.0)
+        _, _, res1 = refine_pose(cam, P, xy, R, t, f_scale=50.0)
+        chi1 = float(np.sum(res1 ** 2)) / pooled ** 2
+        chi2 = float(np.sum(res2 ** 2)) / pooled ** 2
+        # a refit that slid back to this pose is no second solution
+        apart = np.arccos(np.clip((R2 @ shape.n) @ n, -1, 1))
+        if apart < ang / 2:
+            continue
+        fr["mirror_delta_chi2"] = chi2 - chi1
+        if chi2 - chi1 < opt.mirror_chi2:
+            fr["status"] = (f"ambiguous: the mirror pose (normal turned {np.degrees(ang):.1f} deg about the line of "
+                            f"sight) fits within chi2 {chi2 - chi1:.1f} of this one")

@@ -1,0 +1,45 @@
+"""``conecal fit-pose`` on a ``motion: free`` scan (thin: the work is in conecal.calib)."""
+
+from __future__ import annotations
+
+from collections import Counter
+
+from .. import __version__
+from ..calib.bundle import FAMILIES
+from ..calib.document import free_document
+from ..calib.run import FreeOptions, calibrate_free
+from ..errors import InputError
+from ..geometry import ConeGeometry
+from ..jsonio import read_json, rounded, write_json
+from .options import info, progress_bar
+
+POSES_FORMAT = "conecal-poses/1"
+
+
+def run_free(s, scan, mdoc, markers, geometry, output, max_rms, distortion) -> None:
+    names = [f.name for f in FAMILIES]
+    if distortion != "auto" and distortion not in names:
+        raise InputError(f"--distortion {distortion}: expected auto or one of {', '.join(names)}")
+    g = ConeGeometry.from_dict(read_json(geometry, "conecal-geometry")) if geometry else s.nominal_geometry()
+    if geometry and (abs(g.u[0] - 1) > 1e-9 or abs(g.v[1] - 1) > 1e-9 or abs(g.source[0]) + abs(g.source[1]) > 1e-9):
+        raise InputError(f"{geometry}: a free-pose calibration starts from a geometry in its own frame "
+                         "(source on the z axis, u = +x, v = +y); give none to start from the nominal one")
+    opt = FreeOptions(max_rms_px=max_rms if max_rms != 0.5 else FreeOptions.max_rms_px, distortion=distortion)
+    with progress_bar("fit-pose (pose search)") as prog:
+        res = calibrate_free(s, mdoc, g, opt, progress=prog, say=info)
+    header = {"format": POSES_FORMAT, "software": f"conecal {__version__}", "scan": str(scan),
+              "markers_from": str(markers), "geometry_from": str(geometry) if geometry else "nominal"}
+    doc = free_document(res, opt, header)
+    write_json(output, rounded(doc))
+    sm = doc["summary"]
+    it = doc["intrinsics"]
+    info(f"wrote {output}: {sm['ok']}/{sm['frames']} frames ok, {sm['ambiguous']} ambiguous, {sm['rejected']} "
+         f"rejected; reprojection RMS {sm['rms_px']:.4f} px")
+    for reason, n in Counter(sm["reasons"]).most_common():
+        info(f"  {n} frame(s): {reason}")
+    d = doc["distortion"]
+    info(f"sdd {it['sdd']['value']:.3f} +- {it['sdd']['sigma']:.3f} mm, principal point "
+         f"({it['c0']['value']:.2f} +- {it['c0']['sigma']:.2f}, {it['r0']['value']:.2f} +- {it['r0']['sigma']:.2f}) px; "
+         + (f"distortion {d['family']} (up to {d['max_displacement_px']:.2f} px)" if d else "no distortion claimed"))
+    if res.convention:
+        info(f"phantom symmetry: {res.convention}")
