@@ -129,14 +129,16 @@ def _distort(b: Bundle, q, slot):
 
 def adjust(family: Family, camera: Camera, obs: Observations, points: np.ndarray, radius: float,
            R0: np.ndarray, t0: np.ndarray, start: Bundle | None = None, passes: int = 2,
-           max_nfev: int = 60) -> Bundle:
+           max_nfev: int = 60, covariance: bool = True, probe: bool = False) -> Bundle:
     """Fit all poses, the intrinsics and ``family``'s distortion to ``obs``.
 
     ``R0``, ``t0``: starting poses per slot; ``start``: a solved bundle whose
     camera, distortion and poses to start from (same slots). Residuals are
     whitened by ``obs.sigma``; the covariance is scaled by the reduced
     chi-square when it exceeds 1 (``covariance_scale``), so that sigmas stay
-    honest when detect's sigmas are too small.
+    honest when detect's sigmas are too small. ``probe``: return the start
+    vector and ``model(x, need_jac) -> (measured (N, 2), d/dx (N, 2, P))``
+    instead of solving (for the tests).
     """
     F = len(R0)
     shape = camera.shape
@@ -246,14 +248,17 @@ def adjust(family: Family, camera: Camera, obs: Observations, points: np.ndarray
 
     params = [Parameter(n, v, scale=s, unit=u, undetermined_sigma=np.inf) for n, v, s, u in zip(names, values, scales, units)]
     x = np.array(values, float)
+    if probe:
+        return x, model
     fit = None
-    for _ in range(passes):
+    for _ in range(passes):  # noqa: B007 (the pass number picks the last)
         cam, d, blocks, Rk = unpack(x)
         X = np.einsum("nij,nj->ni", Rk[slot], pts) + blocks[slot, 3:6]
         bias[:] = shadow_bias(cam.geometry(), X, radius, coarse=True) if radius else 0.0
         params = [Parameter(p.name, v, scale=p.scale, unit=p.unit, undetermined_sigma=np.inf) for p, v in zip(params, x)]
         fit = solve(params, lambda x: ((model(x)[0] - obs.xy) / sig).ravel(),
-                    lambda x: (model(x, True)[1] / sig[:, :, None]).reshape(2 * N, -1), max_nfev=max_nfev, tol=1e-10)
+                    lambda x: (model(x, True)[1] / sig[:, :, None]).reshape(2 * N, -1), max_nfev=max_nfev, tol=1e-10,
+                    large=True, covariance=covariance and _ == passes - 1)
         x = fit.x
     cam, d, blocks, Rk = unpack(x)
     m, _ = model(x)

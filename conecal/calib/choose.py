@@ -31,7 +31,8 @@ def heldout_scores(family: Family, full: Bundle, obs: Observations, points, radi
         train = obs.subset(~test)
         if len(np.unique(train.slot)) < F:
             continue
-        b = adjust(family, full.camera, train, points, radius, full.R, full.t, start=full, passes=1, max_nfev=30)
+        b = adjust(family, full.camera, train, points, radius, full.R, full.t, start=full, passes=1, max_nfev=30,
+                   covariance=False)
         pred = b.predict(points[obs.sph[test]], obs.slot[test], radius)
         r2[test] = np.sum((pred - obs.xy[test]) ** 2, 1) / sigma_eff[test] ** 2
     return r2

@@ -64,6 +64,9 @@ def describe_phantom(points, ids, plane_tol_mm: float = 0.05, lattice_tol: float
     e1, e2, n = Vt
     if np.linalg.det(Vt) < 0:
         n = -n
+    # the normal along the phantom's own +z where it has one (conventions refer to it)
+    if n @ [0, 0, 1] < 0 or (n @ [0, 0, 1] == 0 and n @ [0, 1, 0] < 0):
+        n, e2 = -n, -e2
     planar = len(P) >= 4 and float(np.abs((P - origin) @ n).max()) <= plane_tol_mm
     shape = PhantomShape(P, np.asarray(ids), planar, origin, e1, e2, n)
     if not planar:
@@ -74,7 +77,7 @@ def describe_phantom(points, ids, plane_tol_mm: float = 0.05, lattice_tol: float
     diffs, length = diffs[length > 1e-6], length[length > 1e-6]
     order = np.argsort(length)
     a = diffs[order[0]]
-    b = next((diffs[i] for i in order if abs(np.cross(a, diffs[i])) > 0.3 * length[order[0]] * length[i]), None)
+    b = next((diffs[i] for i in order if abs(a[0] * diffs[i][1] - a[1] * diffs[i][0]) > 0.3 * length[order[0]] * length[i]), None)
     if b is None:
         return shape
     B = np.column_stack([a, b])

@@ -226,7 +226,7 @@ def image_lattice(xy: np.ndarray, n_seeds: int = 6):
             for b in nb[ia + 1:]:
                 vb = xy[b] - xy[s]
                 la, lb = np.linalg.norm(va), np.linalg.norm(vb)
-                if abs(np.cross(va, vb)) < 0.5 * la * lb or not 0.4 < la / lb < 2.5:
+                if abs(va[0] * vb[1] - va[1] * vb[0]) < 0.5 * la * lb or not 0.4 < la / lb < 2.5:
                     continue
                 found = grow_lattice(xy, int(s), a, b)
                 if found is not None and (best is None or len(found) > len(best)):

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import click
+import numpy as np
 
 from .. import __version__
 from ..export import astra_vectors, per_view, projection_matrices, views, write_array
@@ -14,11 +15,13 @@ from .options import info
 @click.argument("result", type=click.Path(dir_okay=False))
 @click.option("--scan", "scan", type=click.Path(), default=None,
               help="The scan whose log gives each view's readings (for a geometry file).")
-@click.option("--format", "fmt", type=click.Choice(["astra", "matrices", "rtk"]), required=True,
+@click.option("--format", "fmt", type=click.Choice(["astra", "matrices", "rtk", "distortion"]), required=True,
               help="astra: cone_vec rows (source, detector centre, u*pu, v*pv); "
                    "matrices: 3x4 projection matrices to (column, row, 1); "
                    "rtk: RTK geometry XML (needs itk-rtk; projection images with spacing (pu, pv) and origin "
-                   "(-(cols-1)/2*pu, -(rows-1)/2*pv)).")
+                   "(-(cols-1)/2*pu, -(rows-1)/2*pv)); "
+                   "distortion: float32 TIFF, pages dc, dr (px) at every ideal pixel centre (per frame if the "
+                   "distortion is per frame): cv2.remap(img, c + dc, r + dr, ...) removes it.")
 @click.option("-o", "--output", required=True, type=click.Path(dir_okay=False),
               help="Output file: .npy for a numpy array, anything else for text (one view per row).")
 def command(result, scan, fmt, output):
@@ -34,7 +37,18 @@ def command(result, scan, fmt, output):
     Examples:
       conecal export demo/rot_geometry.json --scan demo/rot --format astra -o demo/views.txt
       conecal export demo/poses.json --format matrices -o demo/matrices.npy
+      conecal export demo/carm_poses.json --format distortion -o demo/carm_distortion.tif
     """
+    if fmt == "distortion":
+        from ..export.distortion import distortion_pages, write_distortion_tiff
+
+        pages, names = distortion_pages(result)
+        write_distortion_tiff(output, pages, names, f"conecal {__version__} export from {result}; measured = ideal + "
+                                                    "(dc, dr) at ideal pixel centres")
+        peak = max(float(np.hypot(pages[i], pages[i + 1]).max()) for i in range(0, len(pages), 2))
+        info(f"wrote {output}: {len(pages)} pages ({', '.join(names[:4])}{', ...' if len(names) > 4 else ''}), "
+             f"largest displacement {peak:.3f} px")
+        return
     s = load_scan(scan) if scan else None
     g, frames, T, warnings = views(result, s)
     geoms = per_view(g, T)

@@ -17,6 +17,7 @@ import numpy as np
 
 from ..errors import InputError
 from ..geometry import ConeGeometry
+from ..jsonio import new_file_mode
 
 
 def _rtk():
@@ -74,6 +75,7 @@ def write_rtk_xml(path, views: list[ConeGeometry]) -> Path:
         w.SetFilename(tmp)
         w.SetObject(geo)
         w.WriteFile()
+        os.chmod(tmp, new_file_mode())
         os.replace(tmp, path)
     except BaseException:
         Path(tmp).unlink(missing_ok=True)

@@ -14,7 +14,7 @@ import numpy as np
 
 from ..errors import InputError
 from ..geometry import ConeGeometry, RigidTransform
-from ..jsonio import read_json
+from ..jsonio import atomic_write, read_json
 from ..kinematics import Chain, LinearAxis, RotaryAxis
 
 
@@ -79,22 +79,13 @@ def write_array(path, array: np.ndarray, header: str) -> None:
     """``.npy`` as numpy stores it; anything else as text, one view per row,
     with a commented header; written atomically."""
     import io
-    import os
-    import tempfile
 
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "wb") as fh:
-            if path.suffix == ".npy":
-                np.save(fh, array)
-            else:
-                buf = io.StringIO()
-                np.savetxt(buf, array.reshape(len(array), -1), fmt="%.10g", header=header)
-                fh.write(buf.getvalue().encode())
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
+    def write(fh):
+        if Path(path).suffix == ".npy":
+            np.save(fh, array)
+        else:
+            buf = io.StringIO()
+            np.savetxt(buf, array.reshape(len(array), -1), fmt="%.10g", header=header)
+            fh.write(buf.getvalue().encode())
+
+    atomic_write(path, write)

@@ -81,7 +81,7 @@ def solve(parameters: list[Parameter], residuals: Callable[[np.ndarray], np.ndar
           jacobian: Callable[[np.ndarray], np.ndarray], *, loss: str = "linear", f_scale: float = 3.0,
           max_nfev: int = 200, undetermined_factor: float = 10.0, null_tol: float = 1e-7,
           scale_covariance: bool = False, tol: float = 1e-12, hessian: str = "gauss-newton",
-          hessian_step: float = 2.0) -> FitResult:
+          hessian_step: float = 2.0, large: bool = False, covariance: bool = True) -> FitResult:
     """Minimise ``sum rho(r(x)^2)`` over the free parameters.
 
     ``residuals(x)`` and ``jacobian(x)`` take the full parameter vector.
@@ -106,6 +106,13 @@ def solve(parameters: list[Parameter], residuals: Callable[[np.ndarray], np.ndar
     the covariance is the M-estimator's sandwich H^-1 (sum g_i g_i^T) H^-1
     of per-residual gradients g_i over all residuals (the loss weights
     them; no chi^2 scaling).
+
+    ``large``: for problems with hundreds of parameters (a bundle
+    adjustment): no search for blind directions before and after solving
+    (the problem must have no gauge freedom; a blind direction still shows
+    in the final null space and sigmas).
+    ``covariance=False`` skips that too (sigma, correlation: nan), for fits
+    whose only use is their prediction (held-out scores).
     """
     if hessian not in ("gauss-newton", "numerical"):
         raise ValueError(f"hessian: {hessian!r}, expected 'gauss-newton' or 'numerical'")
@@ -149,7 +156,7 @@ def solve(parameters: list[Parameter], residuals: Callable[[np.ndarray], np.ndar
 
     stiff = 1e3 * np.sqrt(max(r0.size, 1))
     bounded = np.isfinite(lo).any() or np.isfinite(hi).any()
-    gauge = null_directions(start)
+    gauge = np.zeros((0, start.size)) if large else null_directions(start)
     nfev = 0
     for attempt in range(2):
         def fun_g(xf, gauge=gauge):
@@ -167,6 +174,8 @@ def solve(parameters: list[Parameter], residuals: Callable[[np.ndarray], np.ndar
                                 method="trf", x_scale=scale, loss=loss, f_scale=f_scale, max_nfev=max_nfev,
                                 xtol=tol, ftol=tol, gtol=tol)
         nfev += res.nfev
+        if large or not covariance:
+            break
         # directions that turn out blind only away from the start: hold them too, and solve again
         late = null_directions(res.x)
         if not len(late):
@@ -187,6 +196,12 @@ def solve(parameters: list[Parameter], residuals: Callable[[np.ndarray], np.ndar
     rin = r[~outliers]
     chi2 = float(rin @ rin)
     dof = int(rin.size - free.sum())
+    if not covariance:
+        nan = np.full((int(free.sum()),) * 2, np.nan)
+        return FitResult(names=names, initial=x0, x=x, free=free, sigma=np.full(len(names), np.nan), covariance=nan,
+                         correlation=nan, residuals=r, cost=float(res.cost), chi2=chi2, dof=dof, nfev=int(res.nfev),
+                         njev=int(res.njev or 0), outliers=outliers, undetermined=[], null_combinations=[],
+                         success=bool(res.status > 0), message=str(res.message), units=[p.unit for p in parameters])
     # null space in the parameters' natural scales
     Js = Jin * scale
     U, s, Vt = np.linalg.svd(Js, full_matrices=False)

@@ -10,14 +10,12 @@ from __future__ import annotations
 
 import base64
 import html
-import os
-import tempfile
 from pathlib import Path
 
 import numpy as np
 
 from .. import __version__
-from ..jsonio import read_json
+from ..jsonio import atomic_write_text, read_json
 from . import plots
 
 FORMATS = ("conecal-geometry", "conecal-poses", "conecal-diagnosis")
@@ -208,13 +206,5 @@ def write_report(results: list, out_dir, *, reconstruct: bool = False) -> Path:
             f"<p>conecal {__version__}; {len(results)} result file(s). Lengths in mm, angles in degrees, "
             f"residuals in px (measured − predicted), σ at 1σ.</p>" + "\n".join(sections) + "</body></html>")
     target = out_dir / "index.html"
-    fd, tmp = tempfile.mkstemp(prefix=".index.", suffix=".html", dir=out_dir)
-    try:
-        with os.fdopen(fd, "w", encoding="utf-8") as f:
-            f.write(page)
-        os.chmod(tmp, 0o644)
-        os.replace(tmp, target)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
+    atomic_write_text(target, page)
     return target

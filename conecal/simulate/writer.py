@@ -22,19 +22,13 @@ import yaml
 
 from .. import __version__
 from ..errors import InputError
-from ..jsonio import dumps
+from ..jsonio import dumps, umask
 from ..effects.imaging import beam_hardened
 from ..scan.config import POSE_GUESS_COLUMNS
 from .render import render_line_integrals
 from .scenarios import Scenario, marker_truth
 
 DARK_LEVEL = 100.0
-
-
-def _umask() -> int:
-    mask = os.umask(0)
-    os.umask(mask)
-    return mask
 
 
 def expose(sc: Scenario, line_integrals: np.ndarray, rng: np.random.Generator, previous_T: np.ndarray | None = None,
@@ -156,7 +150,7 @@ def write_scan(sc: Scenario, out: str | Path, *, seed: int = 0, values: str = "a
             for fr, w in zip(frames_truth, sc.frame_warps):
                 fr["distortion"] = None if w is None else w.to_dict()
         (tmp / "truth.json").write_text(dumps(truth), encoding="utf-8")
-        os.chmod(tmp, 0o777 & ~_umask())
+        os.chmod(tmp, 0o777 & ~umask())
         _swap_into_place(tmp, out)
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
