@@ -62,6 +62,10 @@ def _report_poses(console, path, doc) -> None:
     reasons = Counter(f["status"].split(":", 1)[1].strip().split(" (")[0] for f in doc["frames"] if f["status"] != "ok")
     for why, n in reasons.most_common():
         console.print(f"  [yellow]{n} rejected[/]: {why}")
+    if doc.get("motion") == "free":
+        from ..report.free import free_terminal
+
+        free_terminal(console, doc)
     ok = [f for f in doc["frames"] if f["status"] == "ok"]
     if ok:
         sr = np.array([f["sigma_rotation_deg"] for f in ok])

@@ -110,6 +110,12 @@ def _poses_section(path, doc) -> tuple[str, int]:
                      f"{pl['rotation_mean_deg']:.3f} ± {pl['rotation_std_deg']:.3f} deg.</p>")
     figs = [(plots.placement(doc), "Robot placement error and reprojection RMS per frame."),
             (plots.geometry_sketch(doc), "Source and detector in the lab frame.")]
+    if doc.get("motion") == "free":
+        from .free import free_html
+
+        extra, more = free_html(doc)
+        parts += extra
+        figs = more + figs
     figs = [(p, c) for p, c in figs if p is not None]
     parts += [_figure(p, c) for p, c in figs]
     return "\n".join(parts), len(figs)

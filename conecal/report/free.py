@@ -1,0 +1,104 @@
+"""Report pieces for a free-pose calibration (``fit-pose`` on ``motion: free``)."""
+
+from __future__ import annotations
+
+import html
+
+import numpy as np
+
+from ..geometry.distortion import Distortion
+from .plots import _plt, _png
+
+
+def distortion_field(doc) -> bytes | None:
+    """Heat map of |displacement| with a colour bar and arrows (px)."""
+    d = doc.get("distortion")
+    if not d:
+        return None
+    plt = _plt()
+    rows, cols = doc["detector"]["shape"]
+    dist = Distortion.from_dict(d)
+    dc, dr = dist.field((rows, cols))
+    mag = np.hypot(dc, dr)
+    fig, ax = plt.subplots(figsize=(5.6, 4.6))
+    im = ax.imshow(mag, cmap="viridis", origin="upper", extent=(-0.5, cols - 0.5, rows - 0.5, -0.5))
+    fig.colorbar(im, ax=ax, label="|displacement| (px)")
+    step = max(rows, cols) // 16
+    r, c = np.mgrid[step // 2:rows:step, step // 2:cols:step]
+    ax.quiver(c, r, dc[r, c], dr[r, c], color="white", angles="xy", scale_units="xy",
+              scale=max(float(mag.max()), 1e-9) / (0.8 * step))
+    ax.plot(*dist.centre, "r+", ms=10, label="distortion centre")
+    pp = (doc["intrinsics"]["c0"]["value"], doc["intrinsics"]["r0"]["value"])
+    ax.plot(*pp, "wx", ms=8, label="principal point")
+    ax.legend(loc="lower right", fontsize=7)
+    ax.set_xlabel("column (px)")
+    ax.set_ylabel("row (px)")
+    ax.set_title(f"detector distortion: {d.get('family', d['model'])} (arrows: measured − ideal)", fontsize=9)
+    return _png(fig)
+
+
+def rms_before_after(doc) -> bytes | None:
+    frames = [f for f in doc.get("frames", []) if f.get("rms_px") is not None]
+    if not frames:
+        return None
+    plt = _plt()
+    fr = [f["frame"] for f in frames]
+    fig, ax = plt.subplots(figsize=(7, 3))
+    if any("rms_px_pinhole" in f for f in frames):
+        ax.plot(fr, [f.get("rms_px_pinhole", np.nan) for f in frames], "o", ms=4, label="pinhole (no distortion)")
+    ax.plot(fr, [f["rms_px"] for f in frames], "s", ms=4, label="chosen model")
+    bad = [f for f in frames if f["status"] != "ok"]
+    if bad:
+        ax.plot([f["frame"] for f in bad], [f["rms_px"] for f in bad], "rx", ms=8, label="not ok")
+    ax.set_yscale("log")
+    ax.set_xlabel("frame")
+    ax.set_ylabel("reprojection RMS (px)")
+    ax.legend(fontsize=7)
+    return _png(fig)
+
+
+def _num(v, f="{:.4g}"):
+    return "–" if v is None else f.format(v)
+
+
+def free_html(doc) -> tuple[list[str], list]:
+    """HTML paragraphs/tables and (png, caption) figures."""
+    it = doc["intrinsics"]
+    rows = "".join(f"<tr><td>{n}</td><td>{p['unit']}</td><td class=num>{p['value']:.6g}</td>"
+                   f"<td class=num>{p['sigma']:.3g}</td><td class=num>{p['sigma_statistical']:.3g}</td>"
+                   f"<td class=num>{p['sigma_model']:.3g}</td></tr>" for n, p in it.items())
+    parts = ["<table><tr><th>intrinsic</th><th>unit</th><th>value</th><th>± 1σ</th><th>statistical</th>"
+             f"<th>model</th></tr>{rows}</table>"]
+    d = doc.get("distortion")
+    if d:
+        sig = d.get("sigma", {})
+        prow = "".join(f"<tr><td>{html.escape(k)}</td><td class=num>{v:.4g}</td><td class=num>{_num(sig.get(k))}</td>"
+                       f"</tr>" for k, v in d["parameters"].items() if v or sig.get(k))
+        parts.append(f"<p>Distortion <b>{html.escape(d.get('family', d['model']))}</b> (model {d['model']}, "
+                     f"centre ({d['centre'][0]:.1f}, {d['centre'][1]:.1f}) px, up to {d['max_displacement_px']:.3f} "
+                     f"px; coefficients in px at the normalising radius {d['radius_px']:.1f} px):</p>"
+                     f"<table><tr><th>term</th><th>value</th><th>± 1σ</th></tr>{prow}</table>")
+    else:
+        parts.append("<p>No detector distortion claimed (the held-out markers chose none).</p>")
+    ch = "".join(f"<tr><td>{html.escape(r['family'])}</td><td class=num>{r.get('parameters', '')}</td>"
+                 f"<td class=num>{_num(r.get('heldout_rms_px'))}</td><td class=num>{_num(r.get('behind_chosen_chi2'))}"
+                 f" ± {_num(r.get('behind_se'))}</td><td>{'chosen' if r.get('chosen') else ''}</td></tr>"
+                 for r in doc.get("distortion_choice", []))
+    parts.append("<p>Distortion families on held-out markers (behind: paired held-out χ² difference to the chosen):"
+                 f"</p><table><tr><th>family</th><th>parameters</th><th>held-out RMS px</th><th>behind</th><th></th>"
+                 f"</tr>{ch}</table>")
+    parts.append(f"<p>Gauge: {html.escape(doc.get('gauge', ''))}.</p>")
+    figs = [(distortion_field(doc), "Detector distortion field (colour: magnitude in px; arrows: direction)."),
+            (rms_before_after(doc), "Reprojection RMS per frame: pinhole model vs the chosen model.")]
+    return parts, figs
+
+
+def free_terminal(console, doc) -> None:
+    it = doc["intrinsics"]
+    console.print("  " + ", ".join(f"{n} {p['value']:.4f} ± {p['sigma']:.4f} {p['unit']} (model part "
+                                   f"{p['sigma_model']:.3g})" for n, p in it.items()))
+    d = doc.get("distortion")
+    console.print(f"  distortion: {d['family']} up to {d['max_displacement_px']:.3f} px" if d else
+                  "  distortion: none claimed")
+    sm = doc.get("summary", {})
+    console.print(f"  {sm.get('ambiguous', 0)} ambiguous, {sm.get('rejected', 0)} rejected")
