@@ -192,3 +192,21 @@ def test_free_scan_config_errors(tmp_path):
     (d / "log.csv").write_text("frame,time,rx\n0,0,1\n1,1,1\n2,2,1\n")
     r = CliRunner().invoke(cli, ["fit-pose", str(d), "--markers", str(d / "none.json"), "-o", str(tmp_path / "p.json")])
     assert r.exit_code == 2 and "log.csv" in r.output and "'ry'" in r.output
+
+
+def test_diagnose_runs_on_a_free_pose_result_and_locates_a_moved_sphere(tmp_path):
+    d, mdoc, sc = _free_scan(tmp_path, n=12, seed=3)
+    # the phantom file lies: sphere 13 (the grid centre) is really 0.4 mm off in the plane
+    lines = (d / "phantom.csv").read_text().splitlines()
+    i, x, y, z = lines[13].split(",")
+    lines[13] = f"{i},{float(x) + 0.4},{y},{z}"
+    (d / "phantom.csv").write_text("\n".join(lines) + "\n")
+    (tmp_path / "m.json").write_text(json.dumps(mdoc))
+    run = CliRunner().invoke
+    r = run(cli, ["fit-pose", str(d), "--markers", str(tmp_path / "m.json"), "-o", str(tmp_path / "p.json")])
+    assert r.exit_code == 0, r.output
+    r = run(cli, ["diagnose", str(tmp_path / "p.json"), str(d), "-o", str(tmp_path / "g.json")])
+    assert r.exit_code == 0, r.output
+    g = json.loads((tmp_path / "g.json").read_text())
+    assert g["verdict"].startswith("located, not named") and not g["claims"]
+    assert any(13 in loc.get("spheres", []) for loc in g["located"])

@@ -56,8 +56,11 @@ class PhantomShape:
         return {tuple(int(v) for v in ij): k for k, ij in enumerate(self.lattice)}
 
 
-def describe_phantom(points, ids, plane_tol_mm: float = 0.05, lattice_tol: float = 0.05) -> PhantomShape:
-    """Classify a phantom's sphere positions (mm, phantom frame)."""
+def describe_phantom(points, ids, plane_tol: float = 0.02, lattice_tol: float = 0.1) -> PhantomShape:
+    """Classify a phantom's sphere positions (mm, phantom frame): planar when
+    every sphere is within ``plane_tol`` of the nearest-neighbour spacing of
+    one plane (a measured grid is flat to a fraction of a mm, not exactly);
+    on a lattice when every sphere is within ``lattice_tol`` cells of one."""
     P = np.asarray(points, float)
     origin = P.mean(0)
     _, s, Vt = np.linalg.svd(P - origin)
@@ -67,19 +70,28 @@ def describe_phantom(points, ids, plane_tol_mm: float = 0.05, lattice_tol: float
     # the normal along the phantom's own +z where it has one (conventions refer to it)
     if n @ [0, 0, 1] < 0 or (n @ [0, 0, 1] == 0 and n @ [0, 1, 0] < 0):
         n, e2 = -n, -e2
-    planar = len(P) >= 4 and float(np.abs((P - origin) @ n).max()) <= plane_tol_mm
+    dist = np.linalg.norm(P[:, None] - P[None], axis=-1)
+    spacing = float(np.min(dist[dist > 0])) if len(P) > 1 else 1.0
+    planar = len(P) >= 4 and float(np.abs((P - origin) @ n).max()) <= plane_tol * spacing
     shape = PhantomShape(P, np.asarray(ids), planar, origin, e1, e2, n)
     if not planar:
         return shape
     q = shape.plane_xy
     diffs = (q[:, None] - q[None]).reshape(-1, 2)
     length = np.hypot(diffs[:, 0], diffs[:, 1])
-    diffs, length = diffs[length > 1e-6], length[length > 1e-6]
-    order = np.argsort(length)
-    a = diffs[order[0]]
-    b = next((diffs[i] for i in order if abs(a[0] * diffs[i][1] - a[1] * diffs[i][0]) > 0.3 * length[order[0]] * length[i]), None)
-    if b is None:
+    keep = length > 1e-6
+    diffs, length = diffs[keep], length[keep]
+    # nearest-neighbour steps, folded to one half-plane and grouped by direction;
+    # the median of each group, so that one sphere off its place does not tilt the lattice
+    near = diffs[length < 1.25 * length.min()]
+    near = np.where((near[:, 1] < 0) | ((near[:, 1] == 0) & (near[:, 0] < 0)), -1, 1)[:, None] * near
+    ang = np.arctan2(near[:, 1], near[:, 0])
+    a = np.median(near[np.abs(ang - ang[np.argmin(np.abs(ang))]) < 0.2], axis=0)
+    other = near[np.abs(np.abs(near @ a) / (np.linalg.norm(near, axis=1) * np.linalg.norm(a))) < 0.95]
+    if len(other) == 0:
         return shape
+    ang_b = np.arctan2(other[:, 1], other[:, 0])
+    b = np.median(other[np.abs(ang_b - ang_b[0]) < 0.2], axis=0)
     B = np.column_stack([a, b])
     ij = np.linalg.solve(B, (q - q[0]).T).T
     if np.abs(ij - np.round(ij)).max() > lattice_tol:

@@ -20,7 +20,9 @@ from .options import info, output_option, progress_bar
 @click.option("--image-frames", type=click.IntRange(4, 100000), default=None,
               help="Frames (evenly spread) whose marker patches the image level uses [default: 48; 12 on a "
                    "fit-pose result, whose frames hold ~50 spheres each].")
-def command(result, scan, output, alpha, image_level, image_frames):
+@click.option("--markers", "markers", type=click.Path(dir_okay=False), default=None,
+              help="Free-pose results: the markers file fit-pose read [default: the result's markers_from].")
+def command(result, scan, output, alpha, image_level, image_frames, markers):
     """Find the physical effect that RESULT (fit-rotation, fit-linear or
     fit-pose on SCAN) left out, model it, and show the fit improve.
 
@@ -38,6 +40,11 @@ def command(result, scan, output, alpha, image_level, image_frames):
     BIC clearly, and reported as ambiguous when the held-out data cannot
     tell it from another (paired, within two standard errors).
 
+    On a free-pose result (fit-pose on a motion: free scan, which already
+    chose the detector distortion on held-out markers) what the chosen model
+    still misses is located: a field over the detector, a sphere off its
+    CAD position, frames above the others.
+
     On a fit-pose result the observations are the holder's poses against
     the arm's model (joint log through the DH table, registration refitted):
     joint zero offsets, the arm yielding under the holder's weight, encoder
@@ -48,6 +55,7 @@ def command(result, scan, output, alpha, image_level, image_frames):
     Examples:
       conecal diagnose demo/rot_geometry.json demo/rot -o demo/diagnosis.json
       conecal diagnose demo/poses.json demo/arm -o demo/arm_diagnosis.json
+      conecal diagnose demo/carm_poses.json demo/carm -o demo/carm_diagnosis.json
     """
     from .. import __version__
     from ..diagnose import ResultModel, diagnose, diagnose_image, merge_levels
@@ -57,6 +65,21 @@ def command(result, scan, output, alpha, image_level, image_frames):
 
     doc = read_json(result, ("conecal-geometry", "conecal-poses"))
     s = load_scan(scan)
+    if doc.get("motion") == "free":
+        from ..diagnose.free import diagnose_free
+        from ..fit.markers import read_markers
+
+        src = markers or doc.get("markers_from")
+        if not src:
+            from ..errors import InputError
+            raise InputError(f"{result}: markers_from: a free-pose result must name its markers file")
+        out = diagnose_free(doc, s, read_markers(src), alpha)
+        out = {"format": "conecal-diagnosis/1", "software": f"conecal {__version__}", "result": str(result),
+               "scan": str(scan), "stage": "fit-pose (free)", **out, "image_level": None,
+               "units": {"residual": "px (measured - predicted)", "size": "px"}}
+        write_json(output, rounded(out))
+        info(f"wrote {output}: {out['verdict']}")
+        return
     pose = doc["format"].startswith("conecal-poses")
     if pose:
         from ..diagnose.pose import PoseModel, PoseScene
