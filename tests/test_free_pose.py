@@ -64,8 +64,9 @@ def test_bundle_jacobian_matches_finite_differences(family):
 
 
 def _truncated_grid_frame():
-    """A symmetric 5x5 grid with its first column off the detector: a
-    labelling shifted by one pitch explains the image as well."""
+    """A symmetric 5x5 grid whose first column is not seen although it falls on
+    the detector (hidden): a labelling shifted by one pitch explains the image
+    as well, and predicts an unseen column just the same."""
     cam = _camera()
     shape = describe_phantom(grid_phantom(), np.arange(1, 26))
     R = rotvec_to_matrix(np.deg2rad([20.0, 10.0, 0.0]))
@@ -79,6 +80,23 @@ def test_truncated_symmetric_grid_is_ambiguous_not_ok():
     cam, shape, xy, _ = _truncated_grid_frame()
     res = search_frame(cam, shape, xy)
     assert res.status.startswith("ambiguous"), res.status
+
+
+def test_grid_cut_by_the_detector_edge_is_identified():
+    """A column off the detector is not missing evidence; a labelling one
+    pitch off would put a column on the detector where none is seen."""
+    cam = _camera()
+    shape = describe_phantom(grid_phantom(), np.arange(1, 26))
+    R = rotvec_to_matrix(np.deg2rad([10.0, 15.0, 3.0]))
+    t = np.array([-50.0, 0.0, 0.0])
+    xy = cam.project(shape.points @ R.T + t)
+    seen = (xy[:, 0] > 4) & (xy[:, 0] < 507) & (xy[:, 1] > 4) & (xy[:, 1] < 507)
+    assert 15 <= seen.sum() < 25
+    res = search_frame(cam, shape, xy[seen])
+    assert res.status == "ok", res.status
+    lab = shape.points[res.best.sph] @ res.best.R.T + res.best.t
+    true = (shape.points @ R.T + t)[seen][res.best.det]
+    assert np.abs(lab - true).max() < 0.05
 
 
 def test_full_grid_symmetry_resolved_by_convention():

@@ -39,6 +39,7 @@ class PhantomShape:
     lattice: np.ndarray | None = None
     basis: np.ndarray | None = None
     symmetries: list = field(default_factory=list)
+    radius: float = 1.0        # sphere radius, mm
 
     @property
     def plane_xy(self) -> np.ndarray:
@@ -56,7 +57,8 @@ class PhantomShape:
         return {tuple(int(v) for v in ij): k for k, ij in enumerate(self.lattice)}
 
 
-def describe_phantom(points, ids, plane_tol: float = 0.02, lattice_tol: float = 0.1) -> PhantomShape:
+def describe_phantom(points, ids, plane_tol: float = 0.02, lattice_tol: float = 0.1,
+                     radius: float = 1.0) -> PhantomShape:
     """Classify a phantom's sphere positions (mm, phantom frame): planar when
     every sphere is within ``plane_tol`` of the nearest-neighbour spacing of
     one plane (a measured grid is flat to a fraction of a mm, not exactly);
@@ -73,7 +75,7 @@ def describe_phantom(points, ids, plane_tol: float = 0.02, lattice_tol: float = 
     dist = np.linalg.norm(P[:, None] - P[None], axis=-1)
     spacing = float(np.min(dist[dist > 0])) if len(P) > 1 else 1.0
     planar = len(P) >= 4 and float(np.abs((P - origin) @ n).max()) <= plane_tol * spacing
-    shape = PhantomShape(P, np.asarray(ids), planar, origin, e1, e2, n)
+    shape = PhantomShape(P, np.asarray(ids), planar, origin, e1, e2, n, radius=radius)
     if not planar:
         return shape
     q = shape.plane_xy
@@ -98,7 +100,7 @@ def describe_phantom(points, ids, plane_tol: float = 0.02, lattice_tol: float = 
         return shape
     ij = np.round(ij).astype(int)
     ij -= ij.min(0)
-    return PhantomShape(P, shape.ids, True, origin, e1, e2, n, ij, B, _symmetries(ij, B))
+    return PhantomShape(P, shape.ids, True, origin, e1, e2, n, ij, B, _symmetries(ij, B), radius)
 
 
 def _symmetries(ij: np.ndarray, B: np.ndarray) -> list:

@@ -81,8 +81,8 @@ def calibrate_free(scan, markers: dict, geometry, opt: FreeOptions = FreeOptions
     ``geometry``: the starting (nominal) ConeGeometry in the free-pose lab
     frame. ``progress(done, total)``, ``say(line)``: feedback."""
     cam = Camera.nominal(geometry, scan.config.nominal.sod)
-    shape = describe_phantom(scan.phantom.positions, scan.phantom.ids)
     radius = scan.config.markers.diameter / 2
+    shape = describe_phantom(scan.phantom.positions, scan.phantom.ids, radius=radius)
     guesses = _guesses(scan)
     by_frame = {int(f["frame"]): f for f in markers["frames"]}
     frames = []

@@ -41,6 +41,12 @@ class Candidate:
     rms_px: float = np.inf
     how: str = ""
     lattice_map: tuple | None = None
+    missing: int = 0           # spheres predicted clear on the detector but not found
+
+    @property
+    def score(self) -> int:
+        """Spheres explained, less those the pose says must be seen but are not."""
+        return len(self.sph) - self.missing
 
 
 @dataclass
@@ -125,7 +131,27 @@ def _polish(cam: Camera, shape: PhantomShape, xy: np.ndarray, cand: Candidate, g
         rms = float(np.sqrt(np.mean(np.sum(res ** 2, 1))))
     else:
         rms = np.inf
-    return Candidate(det, sph, R, t, rms, cand.how, cand.lattice_map)
+    return Candidate(det, sph, R, t, rms, cand.how, cand.lattice_map, _missing(cam, shape, R, t, sph))
+
+
+def _missing(cam: Camera, shape: PhantomShape, R, t, sph) -> int:
+    """Phantom spheres this pose puts well inside the detector, clear of every
+    other sphere's shadow, that no detection was assigned to: evidence
+    against the pose (a labelling one pitch off predicts a column where the
+    image has none)."""
+    pred = cam.project(shape.points @ R.T + t)
+    rows, cols = cam.shape
+    f = cam.focal_px.mean()
+    depth = (shape.points @ R.T + t - cam.source)[:, 2]
+    margin = 2.0 + 2 * f * shape.radius / depth     # a shadow's diameter, px
+    inside = ((pred[:, 0] > margin) & (pred[:, 0] < cols - 1 - margin) & (pred[:, 1] > margin)
+              & (pred[:, 1] < rows - 1 - margin))
+    d = np.linalg.norm(pred[:, None] - pred[None], axis=-1)
+    np.fill_diagonal(d, np.inf)
+    clear = d.min(1) > 2 * margin if len(pred) > 1 else np.ones(len(pred), bool)
+    found = np.zeros(len(pred), bool)
+    found[np.asarray(sph, int)] = True
+    return int(np.sum(inside & clear & ~found))
 
 
 def _tighten(cam: Camera, shape: PhantomShape, xy: np.ndarray, cands: list, floor_px: float) -> list:
@@ -270,12 +296,14 @@ def planar_candidates(cam: Camera, shape: PhantomShape, xy: np.ndarray) -> list[
         offsets = {tuple(p - m[0]) for p in shape.lattice}
         for o in offsets:
             keys = [tuple(v) for v in m + np.array(o)]
-            if not all(k in lat for k in keys):
+            inside = np.array([k in lat for k in keys])
+            # one stray blob grown into the image lattice may fall outside the phantom
+            if inside.sum() < len(keys) - (1 if len(keys) >= 10 else 0):
                 continue
-            sph = np.array([lat[k] for k in keys])
-            H = homography(plane[sph], xy[idx])
+            sph = np.array([lat[k] for k, ok in zip(keys, inside) if ok])
+            H = homography(plane[sph], xy[idx[inside]])
             R, t = pose_from_homography(cam, shape, H)
-            out.append(Candidate(idx, sph, R, t, how="lattice", lattice_map=(mi, o)))
+            out.append(Candidate(idx[inside], sph, R, t, how="lattice", lattice_map=(mi, o)))
     return out
 
 
@@ -409,7 +437,7 @@ def search_frame(cam: Camera, shape: PhantomShape, xy: np.ndarray, guess=None,
     if not cands:
         return SearchResult(f"rejected: no pose explains {opt.min_spheres} or more of {len(xy)} markers")
     # most spheres explained, then the lowest residual
-    cands.sort(key=lambda c: (-len(c.sph), c.rms_px))
+    cands.sort(key=lambda c: (-c.score, c.rms_px))
     best = cands[0]
     rivals = []
     for c in cands[1:]:
@@ -417,7 +445,7 @@ def search_frame(cam: Camera, shape: PhantomShape, xy: np.ndarray, guess=None,
             continue
         if any(_same_pose(c, r) for r in rivals):
             continue
-        if len(c.sph) >= len(best.sph) - 1 and c.rms_px <= best.rms_px + opt.tie_px:
+        if c.score >= best.score - 1 and c.rms_px <= best.rms_px + opt.tie_px:
             rivals.append(c)
     convention = ""
     if shape.symmetries and rivals:
