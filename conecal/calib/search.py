@@ -64,15 +64,17 @@ class SearchOptions:
     the least common gate when candidates compete; tie_px: two
     candidates whose RMS differ by less than this tie; guess_deg, guess_mm:
     how far a rough guess may be off; n_orientations: samples of SO(3) for
-    a full search (about 9 deg apart at 20000)."""
+    a full search (about 12 deg apart at 8000); retry_px: when no candidate
+    of a 3-D phantom fits better than this, search again three times denser."""
 
     min_spheres: int = 6
     gate_px: float = 6.0
     tie_px: float = 1.0
     gate_floor_px: float = 2.0
+    retry_px: float = 1.0
     guess_deg: float = 40.0
     guess_mm: float = 25.0
-    n_orientations: int = 20000
+    n_orientations: int = 8000
 
 
 # ----------------------------------------------------------------------------- pose refinement
@@ -336,8 +338,11 @@ def _vote(cam: Camera, P: np.ndarray, xy: np.ndarray, Rs: np.ndarray, depths, ce
     points P) that most detections agree on, in cells of ``cell`` px (two
     grids half a cell apart, so that an offset on a border counts once)."""
     f = cam.focal_px
-    rows, cols = cam.shape
-    nb_c, nb_r = int(2 * cols / cell) + 2, int(2 * rows / cell) + 2
+    # the phantom's centre projects among its detections: offsets are voted
+    # only over the detections' extent about their median
+    mid = np.median(xy, 0)
+    half = float(np.abs(xy - mid).max()) + 2 * cell
+    nb = int(2 * half / cell) + 2
     hyps = []
     chunk = max(1, 400000 // max(1, len(P) * len(xy)))
     for z in depths:
@@ -346,17 +351,18 @@ def _vote(cam: Camera, P: np.ndarray, xy: np.ndarray, Rs: np.ndarray, depths, ce
             X = np.einsum("kij,nj->kni", Rc, P)
             pred = np.stack([f[0] * X[..., 0] / (z + X[..., 2]), f[1] * X[..., 1] / (z + X[..., 2])], -1)
             d = xy[None, :, None, :] - pred[:, None, :, :] - [cam.c0, cam.r0]       # (k, det, sph, 2)
-            for half in (0.0, 0.5):
-                qc = np.floor(d[..., 0] / cell + half + cols / cell).astype(int)
-                qr = np.floor(d[..., 1] / cell + half + rows / cell).astype(int)
-                okq = (qc >= 0) & (qc < nb_c) & (qr >= 0) & (qr < nb_r)
-                key = (np.arange(len(Rc))[:, None, None] * nb_c * nb_r + qc * nb_r + qr)[okq]
-                counts = np.bincount(key, minlength=len(Rc) * nb_c * nb_r).reshape(len(Rc), -1)
+            rel = d - (mid - [cam.c0, cam.r0])
+            for shift in (0.0, 0.5):
+                qc = np.floor(rel[..., 0] / cell + shift + half / cell).astype(int)
+                qr = np.floor(rel[..., 1] / cell + shift + half / cell).astype(int)
+                okq = (qc >= 0) & (qc < nb) & (qr >= 0) & (qr < nb)
+                key = (np.arange(len(Rc))[:, None, None] * nb * nb + qc * nb + qr)[okq]
+                counts = np.bincount(key, minlength=len(Rc) * nb * nb).reshape(len(Rc), -1)
                 best = counts.argmax(1)
                 votes = counts[np.arange(len(Rc)), best]
                 for k in np.argsort(-votes)[:keep]:
-                    oc = ((best[k] // nb_r) + 0.5 - half) * cell - cols
-                    orr = ((best[k] % nb_r) + 0.5 - half) * cell - rows
+                    oc = ((best[k] // nb) + 0.5 - shift) * cell - half + mid[0] - cam.c0
+                    orr = ((best[k] % nb) + 0.5 - shift) * cell - half + mid[1] - cam.r0
                     hyps.append((int(votes[k]), s0 + int(k), z, oc, orr))
     hyps.sort(key=lambda h: -h[0])
     return hyps
@@ -369,7 +375,7 @@ def _hypothesis_pose(cam: Camera, R, z, oc, orr, pc):
 
 
 def voted_candidates(cam: Camera, shape: PhantomShape, xy: np.ndarray, guess=None, n_orientations: int = 8000,
-                     keep: int = 20) -> list[Candidate]:
+                     keep: int = 20, seed: int = 7) -> list[Candidate]:
     """Orientation samples x depths (coarse), then a finer local vote about each
     of the ``keep`` best distinct coarse hypotheses."""
     P = shape.points - shape.points.mean(0)
@@ -379,7 +385,7 @@ def voted_candidates(cam: Camera, shape: PhantomShape, xy: np.ndarray, guess=Non
         Rs = _orientations(0, guess[0])
         depths = [float((guess[0] @ pc)[2] + guess[1][2] + cam.sod)]
     else:
-        Rs = _orientations(n_orientations)
+        Rs = _orientations(n_orientations, seed=seed)
         depths = [cam.sod * s for s in (0.85, 0.93, 1.0, 1.08, 1.17)]
     cell = max(6.0, CELL_FRACTION * spacing_px)
     hyps = _vote(cam, P, xy, Rs, depths, cell, keep)
@@ -431,6 +437,11 @@ def search_frame(cam: Camera, shape: PhantomShape, xy: np.ndarray, guess=None,
             raw = voted_candidates(cam, shape, xy, None, opt.n_orientations)
     cands = [_polish(cam, shape, xy, c, gates=(3 * opt.gate_px, opt.gate_px)) for c in raw]
     cands = [c for c in cands if len(c.sph) >= 4 and np.isfinite(c.rms_px)]
+    if shape.lattice is None and (not cands or min(c.rms_px for c in cands) > opt.retry_px):
+        # nothing fits well (a crowded view of a 3-D phantom): a denser second search
+        more = voted_candidates(cam, shape, xy, None, 3 * opt.n_orientations, seed=11)
+        cands += [c for c in (_polish(cam, shape, xy, c, gates=(3 * opt.gate_px, opt.gate_px)) for c in more)
+                  if len(c.sph) >= 4 and np.isfinite(c.rms_px)]
     if cands:
         cands = _tighten(cam, shape, xy, cands, opt.gate_floor_px)
     cands = [c for c in cands if len(c.sph) >= opt.min_spheres and np.isfinite(c.rms_px)]
