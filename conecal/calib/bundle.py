@@ -140,7 +140,7 @@ def adjust(family: Family, camera: Camera, obs: Observations, points: np.ndarray
     vector and ``model(x, need_jac) -> (measured (N, 2), d/dx (N, 2, P))``
     instead of solving (for the tests).
     """
-    F = len(R0)
+    F = len(R0) if R0 is not None else len(start.R)
     shape = camera.shape
     dist = family.start(shape)
     per = np.zeros((F, len(family.per_frame)))
@@ -250,19 +250,34 @@ def adjust(family: Family, camera: Camera, obs: Observations, points: np.ndarray
     x = np.array(values, float)
     if probe:
         return x, model
+    # A free distortion centre is blind while the distortion is nil: a weak
+    # prior (half the normalising radius about the detector centre) keeps it
+    # put there, and is negligible against any distortion the data show.
+    prior_J = np.zeros((2 if family.free_centre else 0, len(x)))
+    if family.free_centre:
+        centre0 = np.array(detector_centre(shape))
+        prior_w = 1.0 / (0.5 * dist.radius)
+        prior_J[0, 3], prior_J[1, 4] = prior_w, prior_w
+
+    def prior_r(x):
+        return (x[3:5] - centre0) * prior_w if family.free_centre else np.zeros(0)
     fit = None
     for _ in range(passes):  # noqa: B007 (the pass number picks the last)
         cam, d, blocks, Rk = unpack(x)
         X = np.einsum("nij,nj->ni", Rk[slot], pts) + blocks[slot, 3:6]
         bias[:] = shadow_bias(cam.geometry(), X, radius, coarse=True) if radius else 0.0
         params = [Parameter(p.name, v, scale=p.scale, unit=p.unit, undetermined_sigma=np.inf) for p, v in zip(params, x)]
-        fit = solve(params, lambda x: ((model(x)[0] - obs.xy) / sig).ravel(),
-                    lambda x: (model(x, True)[1] / sig[:, :, None]).reshape(2 * N, -1), max_nfev=max_nfev, tol=1e-10,
+        fit = solve(params, lambda x: np.concatenate([((model(x)[0] - obs.xy) / sig).ravel(), prior_r(x)]),
+                    lambda x: np.vstack([(model(x, True)[1] / sig[:, :, None]).reshape(2 * N, -1), prior_J]),
+                    max_nfev=max_nfev, tol=1e-8,
                     large=True, covariance=covariance and _ == passes - 1)
         x = fit.x
     cam, d, blocks, Rk = unpack(x)
     m, _ = model(x)
     res = m - obs.xy
+    # the reduced chi-square of the markers alone (the prior rows are not data)
+    fit.chi2 = float(np.sum((res / sig) ** 2))
+    fit.dof = int(2 * N - fit.free.sum())
     scale = max(1.0, fit.reduced_chi2) if np.isfinite(fit.reduced_chi2) else 1.0
     return Bundle(family, cam, d, blocks[:, 6:].copy(), Rk, blocks[:, 3:6].copy(), res, fit, scale, names, slot.copy())
 

@@ -110,7 +110,8 @@ def calibrate_free(scan, markers: dict, geometry, opt: FreeOptions = FreeOptions
         else:
             chosen, choice = family_named(opt.distortion), [{"family": opt.distortion, "chosen": True,
                                                              "why": "named by --distortion"}]
-        final = fits[chosen.name]
+        final = fits[chosen.name] = adjust(chosen, cam, obs, shape.points, radius, None, None,
+                                           start=fits[chosen.name], max_nfev=100)
         if not _judge(final, usable, obs, opt):
             break
         usable = [fr for fr in usable if fr["status"] == "ok"]
@@ -139,7 +140,9 @@ def _fit_families(fams, cam, usable, dets, shape, radius, opt):
     R0, t0 = flexible.R[idx], flexible.t[idx]
     fits = {"none": adjust(family_named("none"), cam, obs, shape.points, radius, R0, t0)}
     for fam in fams[1:]:
-        fits[fam.name] = adjust(fam, cam, obs, shape.points, radius, R0, t0, start=fits["none"])
+        # a family the data hardly constrain (a per-frame twist on an undistorted
+        # detector) creeps; 30 evaluations are enough to score it
+        fits[fam.name] = adjust(fam, cam, obs, shape.points, radius, R0, t0, start=fits["none"], max_nfev=30)
     for s, fr in enumerate(kept):
         fr["slot"] = s
     return obs, fits, kept
