@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import os
+import sys
 import tempfile
 from pathlib import Path
 from typing import Any
@@ -44,8 +45,11 @@ def atomic_write(path: str | os.PathLike, write) -> None:
     rename it to ``path``, so that readers (and ``make -j``) never see a
     partial file; the file gets mode ``0666 & ~umask`` like any new file."""
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    except OSError as exc:
+        raise InputError(f"{path}: cannot write ({exc.strerror or exc})") from None
     try:
         with os.fdopen(fd, "wb") as fh:
             write(fh)
@@ -53,11 +57,13 @@ def atomic_write(path: str | os.PathLike, write) -> None:
             os.fsync(fh.fileno())
         os.chmod(tmp, new_file_mode())
         os.replace(tmp, path)
-    except BaseException:
+    except BaseException as exc:
         try:
             os.unlink(tmp)
         except FileNotFoundError:
             pass
+        if isinstance(exc, OSError):
+            raise InputError(f"{path}: cannot write ({exc.strerror or exc})") from None
         raise
 
 
@@ -74,6 +80,11 @@ def dumps(doc: dict) -> str:
 
 
 def write_json(path: str | os.PathLike, doc: dict) -> None:
+    """Write ``doc`` atomically (``-``: to standard output)."""
+    if str(path) == "-":
+        sys.stdout.write(dumps(doc))
+        sys.stdout.flush()
+        return
     atomic_write_text(path, dumps(doc))
 
 

@@ -139,3 +139,36 @@ def test_sigterm_to_simulate_leaves_no_partial_directory(tmp_path):
     _, err = proc.communicate(timeout=30)
     assert proc.returncode == 128 + signal.SIGTERM, err
     assert os.listdir(tmp_path) == []
+
+
+def test_files_get_the_umask_mode_and_stdout_and_late_flags_work(tmp_path):
+    import json
+
+    scan = tmp_path / "scan"
+    write_scan(rotation_scan(0, n_frames=6, rows=96, cols=96, pitch=0.8), scan)
+    old = os.umask(0o022)
+    try:
+        assert run("detect", scan, "-o", tmp_path / "m.json", "-q").exit_code == 0     # -q after the subcommand
+    finally:
+        os.umask(old)
+    assert (tmp_path / "m.json").stat().st_mode & 0o777 == 0o644
+    res = subprocess.run(CONECAL + ["detect", str(scan), "-o", "-"], capture_output=True, text=True, timeout=120)
+    assert res.returncode == 0 and json.loads(res.stdout)["format"] == "conecal-markers/1"
+    assert not (Path.cwd() / "-").exists()
+
+
+def test_output_in_a_file_as_folder_fails_before_the_work(tmp_path):
+    (tmp_path / "afile").write_text("x")
+    t0 = time.monotonic()
+    res = run("detect", tmp_path / "nowhere", "-o", tmp_path / "afile" / "m.json")
+    assert res.exit_code == 2 and "not a directory" in res.output and time.monotonic() - t0 < 2
+
+
+def test_a_closed_pipe_ends_quietly(tmp_path):
+    scan = tmp_path / "scan"
+    write_scan(rotation_scan(0, n_frames=6, rows=96, cols=96, pitch=0.8), scan)
+    p = subprocess.Popen(CONECAL + ["detect", str(scan), "-o", "-"], stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    p.stdout.read(10)
+    p.stdout.close()
+    err = p.stderr.read().decode()
+    assert p.wait(timeout=120) in (0, 141) and "Traceback" not in err

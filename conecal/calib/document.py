@@ -1,10 +1,14 @@
 """The ``conecal-poses/1`` document of a free-pose calibration.
 
 Stated sigmas combine the bundle's statistical sigma (scaled by the
-reduced chi-square when that exceeds 1) with the model's: the spread of
-the estimate over the distortion families the held-out markers cannot
-tell from the chosen one (a decentring term and the principal point, for
-one, trade off on a planar grid). ``sigma = hypot(statistical, model)``.
+reduced chi-square when that exceeds 1) with the model's: how far the
+estimate moves to the distortion families the held-out markers cannot tell
+from the chosen one (a decentring term and the principal point, for one,
+trade off on a planar grid), beyond what noise alone would move it. For a
+more flexible family f nesting the chosen c, noise alone gives
+``E[(v_f - v_c)^2] = s_f^2 - s_c^2`` (Hausman); the excess, averaged over
+the tied families, is the model variance. ``sigma = hypot(statistical,
+model)``.
 """
 
 from __future__ import annotations
@@ -33,8 +37,13 @@ def _tied(res: FreeResult) -> list[Bundle]:
     return out
 
 
-def _combine(stat: float, spreads: list) -> tuple[float, float]:
-    model = float(np.sqrt(np.mean(np.square(spreads)))) if spreads else 0.0
+def _combine(stat: float, spreads: list, sigmas: list | None = None) -> tuple[float, float]:
+    """``spreads``: v_f - v_c per tied family; ``sigmas``: their own statistical s_f."""
+    if not spreads:
+        return float(stat), 0.0
+    sigmas = sigmas if sigmas is not None else [stat] * len(spreads)
+    excess = [max(0.0, d * d - max(0.0, sf * sf - stat * stat)) for d, sf in zip(spreads, sigmas)]
+    model = float(np.sqrt(np.mean(excess)))
     return float(np.hypot(stat, model)), model
 
 
@@ -44,7 +53,7 @@ def free_document(res: FreeResult, opt: FreeOptions, header: dict) -> dict:
     intr = {}
     for name, unit, get in (("sdd", "mm", lambda x: x.camera.sdd), ("c0", "px", lambda x: x.camera.c0),
                             ("r0", "px", lambda x: x.camera.r0)):
-        total, model = _combine(b.sigma(name), [get(t) - get(b) for t in tied])
+        total, model = _combine(b.sigma(name), [get(t) - get(b) for t in tied], [t.sigma(name) for t in tied])
         intr[name] = {"value": get(b), "sigma": total, "sigma_statistical": b.sigma(name), "sigma_model": model,
                       "unit": unit}
     dist = None
@@ -74,8 +83,12 @@ def free_document(res: FreeResult, opt: FreeOptions, header: dict) -> dict:
             tr_stat = np.array([b.sigma(f"frame{s}_{n}") for n in ("tx", "ty", "tz")])
             rot_sp = [np.degrees(matrix_to_rotvec(x.R[s] @ b.R[s].T)) for x in tied]
             tr_sp = [x.t[s] - b.t[s] for x in tied]
-            out["sigma_rotation_deg"] = [_combine(rot_stat[i], [v[i] for v in rot_sp])[0] for i in range(3)]
-            out["sigma_translation_mm"] = [_combine(tr_stat[i], [v[i] for v in tr_sp])[0] for i in range(3)]
+            rot_sf = [np.degrees([x.sigma(f"frame{s}_{n}") for n in ("rx", "ry", "rz")]) for x in tied]
+            tr_sf = [[x.sigma(f"frame{s}_{n}") for n in ("tx", "ty", "tz")] for x in tied]
+            out["sigma_rotation_deg"] = [_combine(rot_stat[i], [v[i] for v in rot_sp], [v[i] for v in rot_sf])[0]
+                                         for i in range(3)]
+            out["sigma_translation_mm"] = [_combine(tr_stat[i], [v[i] for v in tr_sp], [v[i] for v in tr_sf])[0]
+                                           for i in range(3)]
             d, p = fr["pairs"]
             out["rms_px"] = fr.get("rms_px")
             if none is not None and s < len(none.R):

@@ -8,7 +8,7 @@ import numpy as np
 from .. import __version__
 from ..export import astra_vectors, per_view, projection_matrices, views, write_array
 from ..scan import load_scan
-from .options import info
+from .options import check_output, info
 
 
 @click.command("export")
@@ -22,7 +22,7 @@ from .options import info
                    "(-(cols-1)/2*pu, -(rows-1)/2*pv)); "
                    "distortion: float32 TIFF, pages dc, dr (px) at every ideal pixel centre (per frame if the "
                    "distortion is per frame): cv2.remap(img, c + dc, r + dr, ...) removes it.")
-@click.option("-o", "--output", required=True, type=click.Path(dir_okay=False),
+@click.option("-o", "--output", required=True, type=click.Path(dir_okay=False), callback=check_output,
               help="Output file: .npy for a numpy array, anything else for text (one view per row).")
 def command(result, scan, fmt, output):
     """Write the per-view geometry of RESULT (conecal-geometry/1 with --scan,

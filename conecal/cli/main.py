@@ -28,7 +28,29 @@ def _terminate_like_interrupt() -> None:
             signal.signal(sig, _raise_terminated)
 
 
+_GLOBAL_FLAGS = ("-q", "--quiet", "-v", "--verbose")
+
+
+def _global_flags_first(args: list[str]) -> list[str]:
+    """Accept -q/-v after the subcommand (``conecal detect SCAN -q``), as a
+    user expects of global flags: no subcommand has options of those names."""
+    args = list(args)
+    if "--" in args:
+        cut = args.index("--")
+        head, tail = args[:cut], args[cut:]
+    else:
+        head, tail = args, []
+    moved = [a for a in head if a in _GLOBAL_FLAGS or (len(a) > 2 and a[0] == "-" and set(a[1:]) == {"v"})]
+    if not moved:
+        return args
+    rest = [a for a in head if a not in moved]
+    return moved + rest + tail
+
+
 class ConecalGroup(click.Group):
+    def parse_args(self, ctx, args):
+        return super().parse_args(ctx, _global_flags_first(args))
+
     def invoke(self, ctx):
         try:
             return super().invoke(ctx)
@@ -44,6 +66,16 @@ class ConecalGroup(click.Group):
         except KeyboardInterrupt:
             click.echo("Interrupted; no output was written.", err=True)
             sys.exit(130)
+        except BrokenPipeError:
+            # the reader went away (``conecal report X | head -1``): end quietly, as a
+            # Unix tool killed by SIGPIPE would (128 + 13), without a traceback
+            try:
+                import os
+
+                os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+            except OSError:
+                pass
+            sys.exit(141)
         except (click.exceptions.ClickException, click.exceptions.Exit, click.exceptions.Abort):
             raise  # click's own usage errors: it prints them and exits 2
         except Exception as exc:  # a bug, not the user's fault: one line unless -v

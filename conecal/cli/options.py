@@ -7,9 +7,31 @@ import sys
 
 import click
 
+def check_output(ctx, param, value):
+    """Fail before any work (exit 2) if ``-o`` cannot be written: its folder is a
+    file, or exists and is not writable; ``-`` is standard output."""
+    import os
+    from pathlib import Path
+
+    if value is None or value == "-":
+        return value
+    p = Path(value)
+    if p.is_dir():
+        raise click.BadParameter(f"{value}: is a directory", ctx=ctx, param=param)
+    parent = p.parent
+    while not parent.exists() and parent != parent.parent:
+        parent = parent.parent
+    if not parent.is_dir():
+        raise click.BadParameter(f"{value}: {parent} is not a directory", ctx=ctx, param=param)
+    if not os.access(parent, os.W_OK | os.X_OK):
+        raise click.BadParameter(f"{value}: cannot write in {parent} (permission denied)", ctx=ctx, param=param)
+    return value
+
+
 # detect, fit-*, report: where the result goes
 output_option = click.option("-o", "--output", "output", required=True, type=click.Path(dir_okay=False),
-                             help="Output JSON file (written atomically).")
+                             callback=check_output,
+                             help="Output JSON file (written atomically; '-' for standard output).")
 # fit-linear, fit-rotation: what a marker's measured centre is predicted as
 centre_model_option = click.option(
     "--centre-model", type=click.Choice(["centroid", "projection"]), default="centroid", show_default=True,
@@ -37,8 +59,22 @@ def info(msg: str) -> None:
 def progress_bar(description: str):
     """Yield a ``progress(done, total)`` callback drawing a rich bar on a
     terminal (stderr); silent when -q or when stderr is not a terminal."""
-    if verbosity() < 0 or not sys.stderr.isatty():
+    if verbosity() < 0:
         yield None
+        return
+    if not sys.stderr.isatty():
+        # under make or a batch scheduler: a plain line about every 10 s
+        import time
+
+        last = [time.monotonic()]
+
+        def line(done, total):
+            now = time.monotonic()
+            if now - last[0] >= 10 or (total and done == total and now - last[0] >= 1):
+                last[0] = now
+                click.echo(f"{description}: {done}/{total if total else '?'}", err=True)
+
+        yield line
         return
     from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
     from rich.console import Console
