@@ -24,8 +24,9 @@ POSES_FORMAT = "conecal-poses/1"
 @click.option("--geometry", "geometry", type=click.Path(dir_okay=False), default=None,
               help="conecal-geometry/1 (from fit-linear); default: the scan's nominal geometry.")
 @output_option
-@click.option("--max-rms", type=click.FloatRange(0, min_open=True), default=0.5, show_default=True,
-              help="Reject a frame whose reprojection RMS exceeds this (px).")
+@click.option("--max-rms", type=click.FloatRange(0, min_open=True), default=None,
+              help="Reject a frame whose reprojection RMS exceeds this (px) [default: 0.5; 1.0 on a motion: free "
+                   "scan, where a frame must also be within 2.5x the scan's median frame RMS].")
 @click.option("--prior-mm", type=click.FloatRange(0, min_open=True), default=3.0, show_default=True,
               help="How far (mm) the true holder may be from the initial pose.")
 @click.option("--prior-deg", type=click.FloatRange(0, min_open=True), default=2.0, show_default=True,
@@ -66,7 +67,13 @@ def command(scan, markers, geometry, output, max_rms, prior_mm, prior_deg, initi
     if s.config.motion == "free":
         from .fit_pose_free import run_free
 
+        if refine_geometry or use_flagged or initial != "log":
+            from ..errors import InputError
+            raise InputError("--refine-geometry, --use-flagged, --initial: robot scans only (a free-pose fit always "
+                             "refines the geometry and judges every marker by its own residual)")
         return run_free(s, scan, mdoc, markers, geometry, output, max_rms, distortion)
+    if max_rms is None:
+        max_rms = 0.5
     if distortion != "auto":
         from ..errors import InputError
         raise InputError("--distortion: only for motion: free scans")

@@ -24,7 +24,7 @@ def run_free(s, scan, mdoc, markers, geometry, output, max_rms, distortion) -> N
     if geometry and (abs(g.u[0] - 1) > 1e-9 or abs(g.v[1] - 1) > 1e-9 or abs(g.source[0]) + abs(g.source[1]) > 1e-9):
         raise InputError(f"{geometry}: a free-pose calibration starts from a geometry in its own frame "
                          "(source on the z axis, u = +x, v = +y); give none to start from the nominal one")
-    opt = FreeOptions(max_rms_px=max_rms if max_rms != 0.5 else FreeOptions.max_rms_px, distortion=distortion)
+    opt = FreeOptions(max_rms_px=max_rms if max_rms is not None else FreeOptions.max_rms_px, distortion=distortion)
     with progress_bar("fit-pose (pose search)") as prog:
         res = calibrate_free(s, mdoc, g, opt, progress=prog, say=info)
     header = {"format": POSES_FORMAT, "software": f"conecal {__version__}", "scan": str(scan),
