@@ -1,6 +1,6 @@
 """Free-pose C-arm calibration (issue 29): conecal fit-pose vs OpenCV calibrateCamera.
 
-Cases come from ``benchmarks/carm_gen.py``, a generator written without
+Cases come from ``benchmarks/carm_indep.py`` (or ``--gen carm_gen``), generators written without
 conecal's code (its own intensifier distortion, shadow centroids, noise,
 spurious and missing detections), or, with ``--own``, from conecal's
 simulator (not independent; for development only). Markers level: every
@@ -233,15 +233,18 @@ def main(argv=None) -> int:
     ap.add_argument("--cases", nargs="*", default=None)
     ap.add_argument("--seeds", nargs="*", type=int, default=[1, 2])
     ap.add_argument("--own", action="store_true", help="conecal's own simulator (not independent)")
+    ap.add_argument("--gen", default="carm_indep", help="generator module in benchmarks/ (carm_indep, carm_gen)")
     ap.add_argument("--json", default=None, help="also write all rows here")
     a = ap.parse_args(argv)
     if a.own:
         make, cases = own_case, a.cases or ["grid_ii", "grid_none", "ball_ii"]
         source = "conecal's own simulator (NOT independent)"
     else:
-        import carm_gen
-        make, cases = carm_gen.make_case, a.cases or list(carm_gen.CASES)
-        source = "benchmarks/carm_gen.py (independent generator)"
+        import importlib
+
+        gen = importlib.import_module(a.gen)
+        make, cases = gen.make_case, a.cases or list(gen.CASES)
+        source = f"benchmarks/{a.gen}.py (independent generator)"
     print(f"# bench_free: cases from {source}")
     rows = []
     with tempfile.TemporaryDirectory() as tmp:

@@ -222,9 +222,15 @@ def grow_lattice(xy: np.ndarray, seed: int, a: int, b: int, gate_frac: float = 0
         new = np.array([c for c in cells if tuple(c.astype(int)) not in have])
         if len(new) == 0:
             break
-        pred = _apply(H, new)
-        step = np.minimum(np.linalg.norm(_apply(H, new + [1, 0]) - pred, axis=1),
-                          np.linalg.norm(_apply(H, new + [0, 1]) - pred, axis=1))
+        with np.errstate(all="ignore"):
+            pred = _apply(H, new)
+            step = np.minimum(np.linalg.norm(_apply(H, new + [1, 0]) - pred, axis=1),
+                              np.linalg.norm(_apply(H, new + [0, 1]) - pred, axis=1))
+        # a degenerate map (cells grown along one line) predicts nothing usable
+        good = np.isfinite(pred).all(1) & np.isfinite(step)
+        if not good.any():
+            break
+        new, pred, step = new[good], pred[good], step[good]
         dist, hit = tree.query(pred)
         added = False
         taken = set(found)
