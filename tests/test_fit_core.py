@@ -77,3 +77,13 @@ def test_robust_loss_derivative_matches_finite_differences(loss):
 def test_unknown_hessian_mode_is_refused():
     with pytest.raises(ValueError, match="hessian"):
         solve([Parameter("x", 0.0)], lambda p: p - 1.0, lambda p: np.ones((1, 1)), hessian="bfgs")
+
+
+def test_large_mode_levenberg_marquardt_agrees_with_the_trust_region(rng):
+    r, j = _decay(rng)
+    params = [Parameter("amplitude", 1.0, scale=0.1), Parameter("rate", 0.5, scale=0.1)]
+    tr = solve(params, r, j, tol=1e-12)
+    lm = solve(params, r, j, tol=1e-12, large=True)
+    assert lm.success and lm.x == pytest.approx(tr.x, abs=1e-8)
+    # covariance from the normal matrix's eigenvectors equals the SVD's
+    assert lm.sigma == pytest.approx(tr.sigma, rel=1e-6)
