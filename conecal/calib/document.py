@@ -6,8 +6,9 @@ estimate moves to the distortion families the held-out markers cannot tell
 from the chosen one (a decentring term and the principal point, for one,
 trade off on a planar grid), beyond what noise alone would move it. For a
 more flexible family f nesting the chosen c, noise alone gives
-``E[(v_f - v_c)^2] = s_f^2 - s_c^2`` (Hausman); the excess, averaged over
-the tied families, is the model variance. ``sigma = hypot(statistical,
+``E[(v_f - v_c)^2] = s_f^2 - s_c^2`` (Hausman); a shift beyond twice that
+difference's sigma counts in full, a smaller one not at all, and the mean
+over the tied families is the model variance. ``sigma = hypot(statistical,
 model)``.
 """
 
@@ -42,7 +43,10 @@ def _combine(stat: float, spreads: list, sigmas: list | None = None) -> tuple[fl
     if not spreads:
         return float(stat), 0.0
     sigmas = sigmas if sigmas is not None else [stat] * len(spreads)
-    excess = [max(0.0, d * d - max(0.0, sf * sf - stat * stat)) for d, sf in zip(spreads, sigmas)]
+    # a shift counts only when noise alone would rarely make it (beyond 2 sigma of
+    # the difference): max(0, d^2 - E d^2) on its own inflates sigma on average
+    excess = [d * d if d * d > 4 * max(sf * sf - stat * stat, 1e-12 * stat * stat) else 0.0
+              for d, sf in zip(spreads, sigmas)]
     model = float(np.sqrt(np.mean(excess)))
     return float(np.hypot(stat, model)), model
 

@@ -88,6 +88,18 @@ def free_html(doc) -> tuple[list[str], list]:
                  f"</p><table><tr><th>family</th><th>parameters</th><th>held-out RMS px</th><th>behind</th><th></th>"
                  f"</tr>{ch}</table>")
     parts.append(f"<p>Gauge: {html.escape(doc.get('gauge', ''))}.</p>")
+    fr_rows = []
+    for f in doc.get("frames", []):
+        sr, st = f.get("sigma_rotation_deg"), f.get("sigma_translation_mm")
+        fr_rows.append(
+            f"<tr><td>{f['frame']}</td><td>{html.escape(f['status'][:90])}</td><td class=num>{f.get('n_spheres', '')}</td>"
+            f"<td class=num>{_num(f.get('rms_px_pinhole'))}</td><td class=num>{_num(f.get('rms_px'))}</td>"
+            f"<td class=num>{', '.join(f'{v:.3g}' for v in sr) if sr else '–'}</td>"
+            f"<td class=num>{', '.join(f'{v:.3g}' for v in st) if st else '–'}</td></tr>")
+    parts.append("<details><summary>Per frame: status, spheres, RMS (px) pinhole → chosen, 1σ of the pose</summary>"
+                 "<table><tr><th>frame</th><th>status</th><th>spheres</th><th>RMS pinhole</th><th>RMS</th>"
+                 "<th>σ rotation (deg; x, y, z)</th><th>σ translation (mm; x, y, z)</th></tr>"
+                 + "".join(fr_rows) + "</table></details>")
     figs = [(distortion_field(doc), "Detector distortion field (colour: magnitude in px; arrows: direction)."),
             (rms_before_after(doc), "Reprojection RMS per frame: pinhole model vs the chosen model.")]
     return parts, figs
