@@ -61,6 +61,9 @@ class DetectOptions:
     # attenuation beyond which a pixel is dead, saturated or outside a
     # circular field of view (transmission below 1.8 %)
     max_attenuation: float = 4.0
+    # the scan's pixel noise with its correlated part (``noise_pixel``), measured
+    # once per scan: the floor of the clutter test's reference noise
+    pixel_noise: float = 0.0
 
     @property
     def factor(self) -> int:
@@ -133,6 +136,18 @@ def noise_small(img: np.ndarray) -> float:
     d = (img[::4, 1::4] - img[::4, :-1:4]).ravel()
     med = np.median(d)
     return 1.4826 * float(np.median(np.abs(d - med))) / np.sqrt(2.0) + 1e-7
+
+
+def noise_pixel(img: np.ndarray, size: int = 7) -> float:
+    """Robust per-pixel noise sigma including noise correlated over a few
+    pixels (JPEG, a scintillator's spread, 8-bit quantisation): the MAD of the
+    image minus its ``size`` x ``size`` box mean. Neighbour differences see
+    only the uncorrelated part, which on such images is half the scatter a
+    background fit meets."""
+    a = np.ascontiguousarray(img[::2, ::2] if min(img.shape) > 256 else img, dtype=np.float32)
+    d = (a - cv2.blur(a, (size, size), borderType=cv2.BORDER_REPLICATE)).ravel()
+    med = np.median(d)
+    return 1.4826 * float(np.median(np.abs(d - med))) / np.sqrt(1 - 1 / size**2) + 1e-7
 
 
 _EMPTY = np.zeros(0)
@@ -301,6 +316,9 @@ def detect_frame(a: np.ndarray, opt: DetectOptions) -> list[Blob]:
         invalid = cv2.dilate((a > opt.max_attenuation).astype(np.uint8), np.ones((5, 5), np.uint8)).astype(bool)
     cands, noise = candidates(a, opt, invalid, small if invalid is None else None)
     noise *= opt.factor  # the downsampled frame averages factor**2 pixels
+    # the clutter test compares a background fit's scatter with the pixel noise
+    # at the fit's own scale (correlated noise included)
+    noise = max(noise, opt.pixel_noise)
     r_guess = opt.diameter_px[0] / 2 if opt.diameter_px[1] / opt.diameter_px[0] < 1.6 else np.mean(opt.diameter_px) / 2
     blobs: list[Blob] = []
     rough = [(cx, cy, opt.diameter_px[0] / 2) for cx, cy, _ in cands]

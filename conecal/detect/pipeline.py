@@ -11,7 +11,7 @@ import numpy as np
 from .. import __version__
 from ..scan import Scan
 from . import kernels
-from .frame import DetectOptions, NonFiniteFrame, detect_frame
+from .frame import DetectOptions, NonFiniteFrame, detect_frame, noise_pixel
 from .track import track
 
 MARKERS_FORMAT = "conecal-markers/1"
@@ -96,6 +96,15 @@ def detect_scan(scan: Scan, opt: DetectOptions, *, workers: int = 2, lag: float 
     that fraction of the previous frame (in time) from each frame first, as
     ``diagnose`` measures it."""
     frames_idx = [int(f) for f in scan.log.frame]
+    if not opt.pixel_noise and frames_idx:
+        # JPEG, 8-bit or scintillator-blurred frames: noise correlated over a
+        # few px, which neighbour differences miss (then every marker looked
+        # like clutter); measured once, on the middle frame
+        from dataclasses import replace
+
+        mid = scan.stack.read(frames_idx[len(frames_idx) // 2], check=False)
+        if np.isfinite(mid).all():
+            opt = replace(opt, pixel_noise=noise_pixel(mid))
     order = np.argsort(np.asarray(scan.log.time, float), kind="stable")
     previous = {frames_idx[order[i]]: frames_idx[order[i - 1]] for i in range(1, len(order))}
 
@@ -163,6 +172,7 @@ def detect_scan(scan: Scan, opt: DetectOptions, *, workers: int = 2, lag: float 
                       "contrast": "attenuation above background"},
             "detector": {"shape": [rows, cols]},
             "options": {"diameter_px": list(opt.diameter_px), "threshold": opt.threshold, "blur_px": opt.blur_px,
+                        "pixel_noise": round(opt.pixel_noise, 8),
                         "max_anisotropy": opt.max_anisotropy, "min_relative_contrast": opt.min_relative_contrast},
             "reference_mu_px": round(ref, 6),
             "identities": "phantom ids are assigned by fit-pose" if robot else "tracked across frames",
