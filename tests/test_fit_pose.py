@@ -8,7 +8,7 @@ from click.testing import CliRunner
 
 from conecal.cli.main import cli
 from conecal.fit.pose import PoseOptions, PoseProblem, fit_frame, fit_helix, helix_screw
-from conecal.geometry import ConeGeometry, rotvec_to_matrix
+from conecal.geometry import ConeGeometry, RigidTransform, rotvec_to_matrix
 from conecal.simulate import robot_helix, write_scan
 from conecal.simulate.scenarios import helix_phantom
 
@@ -122,3 +122,39 @@ def test_bundle_adjustment_recovers_the_detector_centre(robot_scan, tmp_path):
     sig = [doc["bundle_adjustment"]["parameters"][f"detector_centre_{a}"]["sigma"] for a in "xyz"]
     assert np.all(np.abs(err) < 4 * np.array(sig) + 0.02), (err, sig)
     assert np.linalg.norm(err) < 0.5 * np.linalg.norm([0.6, -0.4, 1.5])
+
+
+def test_a_frame_the_log_cannot_start_is_found_by_the_pattern_search(robot_scan):
+    from conecal.detect import detect_scan, options_for_scan
+    from conecal.fit.pose import rescue_frame
+    from conecal.scan import load_scan
+
+    s = load_scan(robot_scan)
+    doc = detect_scan(s, options_for_scan(s))
+    truth = json.loads((robot_scan / "truth.json").read_text())
+    g = ConeGeometry.from_dict(truth["geometry"])
+    T = s.nominal_transforms()
+    P, I = s.phantom.positions, s.phantom.ids
+    screw = helix_screw(fit_helix(P))
+    # every frame's log 8 deg off about the phantom's centre and 4 mm: beyond
+    # the prior (2 deg, 3 mm), so the log alone fails
+    c, sn = np.cos(np.radians(8)), np.sin(np.radians(8))
+    Rz = np.array([[c, -sn, 0], [sn, c, 0], [0, 0, 1.0]])
+    m = P.mean(axis=0)
+    off = RigidTransform(Rz, m - Rz @ m + np.array([4.0, 0.0, 0.0]))
+    rescued = 0
+    for k, fr in enumerate(doc["frames"]):
+        xy = np.array([[q["x"], q["y"]] for q in fr["markers"] if not q["flags"]])
+        sg = np.full(len(xy), 0.05)
+        good = fit_frame(k, g, P, I, 0.4, xy, sg, T.R[k], T.t[k], PoseOptions(), screw)
+        bad = T[k] @ off
+        p = fit_frame(k, g, P, I, 0.4, xy, sg, bad.R, bad.t, PoseOptions(), screw)
+        assert p.status.startswith("rejected: ")
+        r = rescue_frame(k, g, P, I, 0.4, xy, sg, bad.R, bad.t, PoseOptions(), screw, p)
+        if r.status == "ok":      # found: the pose the log could not reach, never another
+            assert good.status == "ok" and r.found_by.startswith("pattern search")
+            assert np.linalg.norm(r.t - good.t) < 0.05 and np.abs(r.R - good.R).max() < 1e-3
+            rescued += 1
+        else:                     # not sure (a helix shifted by a sphere): the rejection stands
+            assert r is p
+    assert rescued >= 1

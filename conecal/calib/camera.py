@@ -93,3 +93,34 @@ class Camera:
         JK[:, 0, 1] = 1.0
         JK[:, 1, 2] = 1.0
         return p, JX, JK
+
+
+class GeometryCamera:
+    """Any :class:`ConeGeometry` (a tilted detector, a robot's lab frame) seen
+    through the interface the pose search uses: exact projections and their
+    point Jacobians; the pinhole numbers (focal length, principal point) only
+    seed its hypotheses, which assume the beam along +z as the contract's
+    nominal set-up has it."""
+
+    def __init__(self, geometry: ConeGeometry):
+        self.g = geometry
+        self.shape = tuple(geometry.shape)
+        self.pitch = tuple(geometry.pixel_pitch)
+        self.c0, self.r0 = (float(v) for v in geometry.principal_point)
+        self.source = np.asarray(geometry.source, float)
+        self.sod = float(-self.source[2]) if self.source[2] < 0 else float(np.linalg.norm(self.source))
+
+    @property
+    def focal_px(self) -> np.ndarray:
+        return np.array([self.g.sdd / self.pitch[0], self.g.sdd / self.pitch[1]])
+
+    def project(self, X) -> np.ndarray:
+        return self.g.project(X)
+
+    def project_jacobians(self, X):
+        p, J = self.g.project_jacobian(np.asarray(X, float))
+        return p, J, None
+
+    def matrix(self) -> np.ndarray:
+        f = self.focal_px
+        return np.array([[f[0], 0, self.c0], [0, f[1], self.r0], [0, 0, 1.0]])

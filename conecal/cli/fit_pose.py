@@ -107,7 +107,8 @@ def command(scan, markers, geometry, output, max_rms, prior_mm, prior_deg, initi
         fr = {"frame": p.frame, "R": p.R, "t": p.t, "status": p.status}
         if p.status == "ok":
             fr.update({"sigma_rotation_deg": p.sigma_rotation_deg, "sigma_translation_mm": p.sigma_translation_mm,
-                       "rms_px": p.rms_px, "n_spheres": p.n_spheres, "sphere_ids": p.ids, "placement_error": pe})
+                       "rms_px": p.rms_px, "n_spheres": p.n_spheres, "sphere_ids": p.ids, "placement_error": pe,
+                       "found_by": p.found_by})
         frames.append(fr)
     rms_all = float(np.sqrt(np.mean(np.concatenate([p.residual_px.ravel() for p in ok]) ** 2)))
     doc = {"format": POSES_FORMAT, "software": f"conecal {__version__}", "scan": str(scan),

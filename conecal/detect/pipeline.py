@@ -102,6 +102,7 @@ def detect_scan(scan: Scan, opt: DetectOptions, *, workers: int = 2, lag: float 
         # like clutter); measured once, on the middle frame
         from dataclasses import replace
 
+        scan.stack.read(frames_idx[0], check=False)   # a bad stack is named at its first frame
         mid = scan.stack.read(frames_idx[len(frames_idx) // 2], check=False)
         if np.isfinite(mid).all():
             opt = replace(opt, pixel_noise=noise_pixel(mid))

@@ -47,6 +47,9 @@ class PoseOptions:
     gate_px: float = 1.5
     min_spheres: int = 8
     min_fraction: float = 0.3
+    # a frame the log cannot start is searched for from the pattern (within
+    # 45 deg of the log's orientation) and fitted again from what is found
+    rescue: bool = True
 
 
 @dataclass
@@ -61,6 +64,7 @@ class FramePose:
     n_spheres: int = 0
     ids: list = field(default_factory=list)
     residual_px: np.ndarray | None = None
+    found_by: str = "log"          # where the fit started: the log, or the pattern search
 
 
 class PoseProblem:
@@ -363,6 +367,8 @@ def fit_poses(scan, markers_doc: dict, geometry: ConeGeometry, opt: PoseOptions,
         p = fit_frame(int(frame), geometry, pts, ids, radius, xy, sg, R0, t0, opt, screw)
         if p.status != "ok" and initial == "previous" and carry is not None:
             p = fit_frame(int(frame), geometry, pts, ids, radius, xy, sg, T.R[k], T.t[k], opt, screw)
+        if p.status != "ok" and opt.rescue and len(xy) >= opt.min_spheres:
+            p = rescue_frame(int(frame), geometry, pts, ids, radius, xy, sg, T.R[k], T.t[k], opt, screw, p)
         if p.status == "ok":
             dR = p.R @ T.R[k].T
             carry = (dR, p.t - T.t[k], T.t[k])
@@ -370,6 +376,47 @@ def fit_poses(scan, markers_doc: dict, geometry: ConeGeometry, opt: PoseOptions,
         if progress:
             progress(k + 1, len(scan.log))
     return poses, T.R, T.t
+
+
+def rescue_frame(frame, geometry, pts, ids, radius, xy, sg, R_log, t_log, opt, screw, failed: FramePose) -> FramePose:
+    """The pattern search (conecal.calib) for a frame the log's pose could not
+    start; the frame is fitted again from what it finds, under the same tests.
+    Identifications the pattern alone cannot tell apart (a helix shifted by a
+    sphere) are decided by the log only when it is at least twice as close to
+    one of them as to any other, in phantom-point RMS. Otherwise the first
+    rejection stands."""
+    from ..calib.camera import GeometryCamera
+    from ..calib.phantom import describe_phantom
+    from ..calib.search import SearchOptions, search_frame
+
+    found = search_frame(GeometryCamera(geometry), describe_phantom(pts, ids, radius=radius), xy, (R_log, t_log),
+                         SearchOptions(min_spheres=opt.min_spheres))
+    start = found.best if found.status == "ok" else _nearest_by_margin(found, pts, R_log, t_log)
+    if start is None:
+        return failed
+    p = fit_frame(frame, geometry, pts, ids, radius, xy, sg, start.R, start.t, opt, screw)
+    if p.status != "ok":
+        return failed
+    p.found_by = "pattern search (the log's pose was off)"
+    return p
+
+
+def _nearest_by_margin(found, pts, R_log, t_log, margin: float = 3.0):
+    """The ambiguous search's candidate the log points to, or None. Distances
+    are RMS displacements of the phantom's points (mm); the log must be within
+    1/margin of the distance from that candidate to each rival, so it is at
+    least (margin - 1) times closer to it than to any other."""
+    if not found.status.startswith("ambiguous") or found.best is None:
+        return None
+    cands = [found.best] + list(found.alternatives)
+
+    def d(Ra, ta, Rb, tb):
+        return float(np.sqrt(np.mean(np.sum((pts @ (Ra - Rb).T + (ta - tb)) ** 2, axis=1))))
+
+    near = min(cands, key=lambda c: d(c.R, c.t, R_log, t_log))
+    dl = d(near.R, near.t, R_log, t_log)
+    sep = min(d(near.R, near.t, c.R, c.t) for c in cands if c is not near)
+    return near if dl * margin < sep else None
 
 
 def refine_geometry(geometry: ConeGeometry, poses: list[FramePose], points: np.ndarray, ids: np.ndarray,
@@ -448,5 +495,5 @@ def refine_geometry(geometry: ConeGeometry, poses: list[FramePose], points: np.n
         sel = obs_f == f
         resid = (residuals(res.x).reshape(-1, 2) * obs_sig[:, None])[sel]
         refined.append(FramePose(p.frame, "ok", R[f], t[f], np.degrees(sd[:3]), sd[3:],
-                                 float(np.sqrt(np.mean(resid**2))), int(sel.sum()), p.ids, resid))
+                                 float(np.sqrt(np.mean(resid**2))), int(sel.sum()), p.ids, resid, p.found_by))
     return g, res, refined
