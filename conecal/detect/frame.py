@@ -64,6 +64,8 @@ class DetectOptions:
     # the scan's pixel noise with its correlated part (``noise_pixel``), measured
     # once per scan: the floor of the clutter test's reference noise
     pixel_noise: float = 0.0
+    # touching shadows fitted together, merged blobs split (conecal.detect.crowded)
+    joint_overlaps: bool = True
 
     @property
     def factor(self) -> int:
@@ -87,9 +89,11 @@ class Blob:
 
 
 def candidates(a: np.ndarray, opt: DetectOptions, invalid: np.ndarray | None = None,
-               small: np.ndarray | None = None):
+               small: np.ndarray | None = None, with_ridges: bool = False):
     """Candidates (x, y, height/noise) in full-resolution px, strongest first,
-    and the pixel noise sigma of the (downsampled) frame."""
+    and the pixel noise sigma of the (downsampled) frame; with ``with_ridges``
+    also the peaks that curve down in every direction but too little along
+    one to be a single sphere (merged shadows, rods)."""
     f = opt.factor
     rows, cols = a.shape
     if invalid is not None:
@@ -122,12 +126,15 @@ def candidates(a: np.ndarray, opt: DetectOptions, invalid: np.ndarray | None = N
     disc = np.sqrt(np.maximum(tr * tr / 4 - det, 0))
     l_small, l_big = tr / 2 + disc, tr / 2 - disc   # both negative at a blob peak
     blobby = (l_big < 0) & (l_small < 0.25 * l_big)
-    ys, xs = ys[blobby], xs[blobby]
+    # a short ridge is what two merged shadows look like: kept apart, to be split or dropped
+    elongated = (l_big < 0) & (l_small < 0) & ~blobby
     h = sm[ys, xs] / noise
-    order = np.argsort(-h, kind="stable")
-    out = []
-    for i in order:
-        out.append(((xs[i] + 0.5) * f - 0.5, (ys[i] + 0.5) * f - 0.5, float(h[i])))
+    out, ridges = [], []
+    for i in np.argsort(-h, kind="stable"):
+        if blobby[i] or elongated[i]:
+            (out if blobby[i] else ridges).append(((xs[i] + 0.5) * f - 0.5, (ys[i] + 0.5) * f - 0.5, float(h[i])))
+    if with_ridges:
+        return out, float(noise_small(small)), ridges
     return out, float(noise_small(small))
 
 
@@ -299,8 +306,12 @@ class NonFiniteFrame(ValueError):
     """The frame holds NaN or inf pixels."""
 
 
-def detect_frame(a: np.ndarray, opt: DetectOptions) -> list[Blob]:
-    """All sphere-like shadows in attenuation frame ``a`` (not yet filtered by contrast).
+def detect_blobs(a: np.ndarray, opt: DetectOptions):
+    """Sphere-like shadows in attenuation frame ``a``, each measured alone
+    (not yet filtered by contrast): (kept blobs, blobs rejected as elongated
+    that may be merged shadows, the frame's noise sigma, the invalid-pixel
+    mask or None). :func:`conecal.detect.crowded.detect_frame` goes on to
+    measure touching shadows together.
 
     Raises :class:`NonFiniteFrame` if ``a`` holds NaN or inf pixels.
     """
@@ -314,7 +325,9 @@ def detect_frame(a: np.ndarray, opt: DetectOptions) -> list[Blob]:
     # dead or outside-the-field regions are large; single hot pixels are handled per window
     if opt.max_attenuation is not None and smax > opt.max_attenuation:
         invalid = cv2.dilate((a > opt.max_attenuation).astype(np.uint8), np.ones((5, 5), np.uint8)).astype(bool)
-    cands, noise = candidates(a, opt, invalid, small if invalid is None else None)
+    cands, noise, ridges = candidates(a, opt, invalid, small if invalid is None else None, with_ridges=True)
+    if not opt.joint_overlaps:
+        ridges = []
     noise *= opt.factor  # the downsampled frame averages factor**2 pixels
     # the clutter test compares a background fit's scatter with the pixel noise
     # at the fit's own scale (correlated noise included)
@@ -347,13 +360,21 @@ def detect_frame(a: np.ndarray, opt: DetectOptions) -> list[Blob]:
                 for b in (bi, bj):
                     if "overlap" not in b.flags:
                         b.flags.append("overlap")
-    kept = []
+    kept, merged = [], []
+    for cx, cy, _ in ridges:
+        if any((cx - b.x) ** 2 + (cy - b.y) ** 2 < b.radius**2 for b in blobs + merged):
+            continue
+        b = refine(a, cx, cy, r_guess, opt, [(o.x, o.y, o.radius) for o in blobs], noise, invalid)
+        if b is not None and b.snr >= opt.min_snr and b.anisotropy < 3.0 and not b.flags:
+            merged.append(b)   # never a marker by itself: split into spheres or dropped
     for b in blobs:
         if b.anisotropy > opt.max_anisotropy and not set(b.flags) & {"truncated", "clutter"}:
-            continue  # rods, edges, two shadows merged into one blob
+            if b.anisotropy < 3.0:
+                merged.append(b)   # perhaps two or three shadows merged into one blob
+            continue  # rods, edges
         if b.anisotropy > 2.0:
             continue  # not a sphere shadow even allowing for what lies across it
         if "clutter" in b.flags and b.profile_misfit > 0.2 + 1.5 / b.radius:
             continue  # a dense irregular blob (bone, debris), not a dome-shaped sphere shadow
         kept.append(b)
-    return kept
+    return kept, merged, noise, invalid

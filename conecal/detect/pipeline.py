@@ -11,7 +11,8 @@ import numpy as np
 from .. import __version__
 from ..scan import Scan
 from . import kernels
-from .frame import DetectOptions, NonFiniteFrame, detect_frame, noise_pixel
+from .crowded import detect_frame
+from .frame import DetectOptions, NonFiniteFrame, noise_pixel
 from .track import track
 
 MARKERS_FORMAT = "conecal-markers/1"
