@@ -4,7 +4,9 @@
 groups the shadows whose centroid windows meet and measures each again on
 the frame with its neighbours' fitted models removed (:mod:`.overlap`), and
 splits a blob rejected as elongated into the 2 or 3 spheres whose
-attenuation it holds, when a joint fit says so. Units: px, attenuation.
+attenuation it holds, when a joint fit says so. A shadow flagged clutter is
+measured again with a straight background step (a plate's or holder's
+edge) fitted beside it and removed. Units: px, attenuation.
 """
 
 from __future__ import annotations
@@ -14,7 +16,7 @@ from dataclasses import replace
 import numpy as np
 
 from .frame import Blob, DetectOptions, detect_blobs, refine
-from .overlap import fit_group, groups_of, render
+from .overlap import fit_group, fit_step, groups_of, render
 
 # the cone-beam shadow's centroid and the model circle's centre differ by
 # ~0.02 px; a larger disagreement is the neighbours' models' error
@@ -150,4 +152,24 @@ def measure_crowded(a: np.ndarray, kept: list[Blob], merged: list[Blob], opt: De
             b.flags = sorted(set(b.flags) | {"overlap"})
             out[i] = b
             new.discard(i)
-    return [b for i, b in enumerate(out) if b is not None and i not in new]
+    out = [b for i, b in enumerate(out) if b is not None and i not in new]
+    return [_beside_step(a, b, opt, noise, invalid) if "clutter" in b.flags and "overlap" not in b.flags else b
+            for b in out]
+
+
+def _beside_step(a, b: Blob, opt: DetectOptions, noise: float, invalid) -> Blob:
+    """A shadow flagged clutter measured again with a straight background
+    step (a plate's edge) fitted and removed, when one is there and the
+    centroid then passes the clutter tests; otherwise ``b`` as it was."""
+    fit = fit_step(a, b.x, b.y, b.radius, b.mu_px, opt.blur_px, noise, invalid)
+    if fit is None:
+        return b
+    (c0, q0, c1, q1), step, x_fit, y_fit = fit
+    work = a.copy()
+    work[q0:q1, c0:c1] -= step
+    b2 = refine(work, b.x, b.y, b.radius, opt, (), noise, invalid)
+    if b2 is None or "clutter" in b2.flags or np.hypot(b2.x - b.x, b2.y - b.y) > b.radius:
+        return b
+    gap2 = (b2.x - x_fit) ** 2 + (b2.y - y_fit) ** 2
+    b2.sigma = float(np.sqrt(b2.sigma**2 + max(gap2 / 2 - b2.sigma**2 - _CONE_OFFSET_PX**2, 0.0)))
+    return b2

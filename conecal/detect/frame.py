@@ -64,7 +64,8 @@ class DetectOptions:
     # the scan's pixel noise with its correlated part (``noise_pixel``), measured
     # once per scan: the floor of the clutter test's reference noise
     pixel_noise: float = 0.0
-    # touching shadows fitted together, merged blobs split (conecal.detect.crowded)
+    # touching shadows fitted together, merged blobs split, a straight
+    # background step beside a shadow removed (conecal.detect.crowded)
     joint_overlaps: bool = True
 
     @property

@@ -146,3 +146,73 @@ def groups_of(blobs, blur: float) -> list[list[int]]:
     for i in range(n):
         out.setdefault(root(i), []).append(i)
     return [g for g in out.values() if len(g) > 1]
+
+
+def fit_step(a: np.ndarray, x: float, y: float, R: float, mu: float, blur: float, noise: float, invalid=None):
+    """A straight background step (a plate's or holder's edge) beside the
+    sphere shadow at (x, y) of radius R: fitted on a patch of radius ~3R
+    together with the sphere (chord profile) and a plane. Returns (box, step
+    image over the box: the edge's part of the background only) or None when
+    no step is there (its height under 5 sigma)."""
+    from scipy.special import ndtr
+
+    rows, cols = a.shape
+    half = int(np.ceil(3 * R + 3 * blur + 4))
+    c0, q0 = max(int(x) - half, 0), max(int(y) - half, 0)
+    c1, q1 = min(int(x) + half + 1, cols), min(int(y) + half + 1, rows)
+    roi = a[q0:q1, c0:c1].astype(np.float64)
+    h, w = roi.shape
+    if h < 8 or w < 8:
+        return None
+    yy, xx = np.mgrid[0:h, 0:w].astype(float)
+    cx, cy = x - c0, y - q0
+    outside = (xx - cx) ** 2 + (yy - cy) ** 2 > (1.2 * R + 3 * blur + 2) ** 2
+    if invalid is not None:
+        outside &= ~invalid[q0:q1, c0:c1]
+    gx = cv2.Sobel(roi.astype(np.float32), cv2.CV_32F, 1, 0, ksize=3)
+    gy = cv2.Sobel(roi.astype(np.float32), cv2.CV_32F, 0, 1, ksize=3)
+    g2 = np.where(outside, gx * gx + gy * gy, 0.0)
+    if g2.sum() <= 0:
+        return None
+    # the edge's normal from the structure tensor, its place from the strongest gradients
+    Sxx, Syy, Sxy = (gx * gx * outside).sum(), (gy * gy * outside).sum(), (gx * gy * outside).sum()
+    phi = 0.5 * np.arctan2(2 * Sxy, Sxx - Syy)
+    n = np.array([np.cos(phi), np.sin(phi)])
+    strong = g2 > 0.25 * g2.max()
+    d0 = float(((xx * n[0] + yy * n[1])[strong] * g2[strong]).sum() / g2[strong].sum())
+    side = (xx * n[0] + yy * n[1]) > d0
+    if not (outside & side).any() or not (outside & ~side).any():
+        return None
+    s0 = float(np.median(roi[outside & side]) - np.median(roi[outside & ~side]))
+    B = np.column_stack([np.ones(h * w), (xx - w / 2).ravel(), (yy - h / 2).ravel()])
+    wv = np.ones(h * w) / noise
+    sb = max(blur, 0.5)
+
+    def step(p):
+        t = (xx * np.cos(p[0]) + yy * np.sin(p[0]) - p[1]) / sb
+        return t, p[2] * ndtr(t)
+
+    def residuals(p):
+        sph = np.array([[p[3], p[4], p[5], p[6]]])
+        return wv * (render((h, w), sph, blur).ravel() + step(p)[1].ravel() + B @ p[7:] - roi.ravel())
+
+    def jacobian(p):
+        sph = np.array([[p[3], p[4], p[5], p[6]]])
+        _, Js = render((h, w), sph, blur, jacobian=True)
+        t, _ = step(p)
+        pdf = np.exp(-0.5 * t * t) / np.sqrt(2 * np.pi) * p[2] / sb
+        dphi = pdf * (-xx * np.sin(p[0]) + yy * np.cos(p[0]))
+        return wv[:, None] * np.column_stack([dphi.ravel(), -pdf.ravel(), ndtr(t).ravel(), Js, B])
+
+    bg = np.median(roi[outside & ~side])
+    params = [Parameter("phi", phi, scale=0.01), Parameter("d", d0, scale=0.1), Parameter("s", s0, scale=0.01),
+              Parameter("x", cx, scale=0.1), Parameter("y", cy, scale=0.1), Parameter("R", R, scale=0.1),
+              Parameter("mu", mu, scale=0.05 * mu), Parameter("b0", bg), Parameter("bx", 0.0), Parameter("by", 0.0)]
+    try:
+        res = solve(params, residuals, jacobian, max_nfev=80, tol=1e-8, scale_covariance=True, large=True)
+    except (FitError, np.linalg.LinAlgError, ValueError):
+        return None
+    p = res.x
+    if not np.isfinite(res.sigma[2]) or abs(p[2]) < 5 * max(res.sigma[2], noise / np.sqrt(h)):
+        return None
+    return (c0, q0, c1, q1), step(p)[1].astype(np.float32), p[3] + c0, p[4] + q0
