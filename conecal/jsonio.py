@@ -11,6 +11,8 @@ from typing import Any
 
 import numpy as np
 
+from .binding import bind
+from .documents import check, check_output
 from .errors import FormatVersionError, InputError
 
 
@@ -76,11 +78,15 @@ def dumps(doc: dict) -> str:
     """Serialise with sorted keys; numpy values become plain JSON."""
     if "format" not in doc:
         raise ValueError("every conecal output states its format version")
-    return json.dumps(_plain(doc), sort_keys=True, indent=1) + "\n"
+    plain = _plain(doc)
+    check_output(plain)
+    return json.dumps(plain, sort_keys=True, indent=1) + "\n"
 
 
 def write_json(path: str | os.PathLike, doc: dict) -> None:
-    """Write ``doc`` atomically (``-``: to standard output)."""
+    """Write ``doc`` atomically (``-``: to standard output), bound to the scan
+    its ``scan`` key names (see :mod:`conecal.binding`)."""
+    doc = bind(doc, path)
     if str(path) == "-":
         sys.stdout.write(dumps(doc))
         sys.stdout.flush()
@@ -111,7 +117,7 @@ def read_json(path: str | os.PathLike, expected: str | tuple[str, ...]) -> dict:
         raise InputError(f"{path}: format is {fmt!r}, expected one of {', '.join(e + '/1' for e in expected)}")
     if version != "1":
         raise FormatVersionError(f"{path}: format {fmt!r} is newer than this conecal reads ({name}/1); upgrade conecal")
-    return doc
+    return check(doc, path)
 
 
 def rounded(obj: Any, digits: int = 12) -> Any:

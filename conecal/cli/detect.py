@@ -23,7 +23,12 @@ from .options import info, output_option, progress_bar, workers_option
 @click.option("--lag", type=click.FloatRange(0, 0.9), default=0.0, show_default=True,
               help="Detector lag to remove first: the fraction of the previous frame's intensity each frame "
                    "keeps (as `diagnose` reports it).")
-def command(scan, output, workers, threshold, blur_px, diameter_px, lag):
+@click.option("--frames", "frame_range", default=None, metavar="START:STOP",
+              help="Only frames START <= k < STOP (frame numbers; either end may be left out): writes a part, "
+                   "to be joined with the other parts by `conecal merge` (the same document a whole run writes).")
+@click.option("--part", "part", default=None, metavar="I/N",
+              help="Only the I-th of N nearly equal parts of the log (1 <= I <= N): a part, as with --frames.")
+def command(scan, output, workers, threshold, blur_px, diameter_px, lag, frame_range, part):
     """Find calibration spheres in every projection of SCAN.
 
     Writes conecal-markers/1: per frame, each marker's centre (x = column,
@@ -35,14 +40,36 @@ def command(scan, output, workers, threshold, blur_px, diameter_px, lag):
       conecal detect demo/linear -o demo/markers.json
       conecal detect scans/hexapod --diameter-px 30 60 -o markers.json
       conecal detect demo/rot --lag 0.046 -o markers.json   # after diagnose found lag
+      conecal detect demo/rot --frames 0:36 -o part0.json     # then: conecal merge part*.json -o m.json
     """
     s = load_scan(scan)
     if diameter_px is not None and not 0 < diameter_px[0] < diameter_px[1]:
         raise click.BadParameter("need 0 < MIN < MAX", param_hint="--diameter-px")
     opt = options_for_scan(s, threshold=threshold, blur_px=blur_px, diameter_px=diameter_px)
+    if frame_range is not None and part is not None:
+        raise click.BadParameter("give --frames or --part, not both", param_hint="--part")
+    if frame_range is not None or part is not None:
+        from ..detect.pipeline import measure_frames
+        from ..detect.shards import parse_frames, parse_part, part_document
+
+        if frame_range is not None:
+            a, b = parse_frames(frame_range, s)
+            idx = [int(k) for k in s.log.frame if a <= int(k) < b]
+        else:
+            idx = parse_part(part, s)
+            a, b = (min(idx), max(idx) + 1) if idx else (0, 0)
+        if not idx:
+            raise click.BadParameter(f"{frame_range or part}: no frame of the log is in this part",
+                                     param_hint="--frames" if frame_range else "--part")
+        with progress_bar("detect") as prog:
+            opt, results = measure_frames(s, opt, idx, workers=workers, lag=lag, progress=prog)
+        write_json(output, {**part_document(s, opt, idx, results, (a, b), lag), "scan": str(scan)})
+        info(f"wrote {output}: part {a}:{b} ({len(idx)} frames, {sum(map(len, results))} blobs); "
+             f"join the parts with conecal merge")
+        return
     with progress_bar("detect") as prog:
         doc = detect_scan(s, opt, workers=workers, lag=lag, progress=prog)
-    write_json(output, doc)
+    write_json(output, {**doc, "scan": str(scan)})
     n = sum(len(f["markers"]) for f in doc["frames"])
     flagged = sum(1 for f in doc["frames"] for m in f["markers"] if m["flags"])
     info(f"wrote {output}: {n} markers in {len(doc['frames'])} frames ({flagged} flagged), {doc['n_ids']} identities")

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import click
 import numpy as np
 
@@ -22,7 +24,10 @@ from .options import info, output_option, progress_bar
                    "fit-pose result, whose frames hold ~50 spheres each].")
 @click.option("--markers", "markers", type=click.Path(dir_okay=False), default=None,
               help="Free-pose results: the markers file fit-pose read [default: the result's markers_from].")
-def command(result, scan, output, alpha, image_level, image_frames, markers):
+@click.option("--allow-other-scan", is_flag=True,
+              help="Diagnose RESULT on SCAN although SCAN is not the scan RESULT was fitted on (e.g. a scan.yaml "
+                   "edited on purpose); without it a mismatch exits 2.")
+def command(result, scan, output, alpha, image_level, image_frames, markers, allow_other_scan):
     """Find the physical effect that RESULT (fit-rotation, fit-linear or
     fit-pose on SCAN) left out, model it, and show the fit improve.
 
@@ -59,11 +64,13 @@ def command(result, scan, output, alpha, image_level, image_frames, markers):
     """
     from .. import __version__
     from ..diagnose import ResultModel, diagnose, diagnose_image, merge_levels
+    from ..binding import check_scan
     from ..diagnose.image_select import scene_chi2
     from ..jsonio import read_json, rounded, write_json
     from ..scan import load_scan
 
     doc = read_json(result, ("conecal-geometry", "conecal-poses"))
+    check_scan(doc, result, scan, allow_other=allow_other_scan)
     s = load_scan(scan)
     if doc.get("motion") == "free":
         from ..diagnose.free import diagnose_free
@@ -73,7 +80,11 @@ def command(result, scan, output, alpha, image_level, image_frames, markers):
         if not src:
             from ..errors import InputError
             raise InputError(f"{result}: markers_from: a free-pose result must name its markers file")
-        out = diagnose_free(doc, s, read_markers(src), alpha)
+        if not markers and not Path(src).is_absolute() and not Path(src).exists():
+            src = Path(result).parent / doc["markers_from_relative"] if doc.get("markers_from_relative") else src
+        mdoc = read_markers(src)
+        check_scan(mdoc, src, scan, option=None, parts=("projections",))
+        out = diagnose_free(doc, s, mdoc, alpha)
         out = {"format": "conecal-diagnosis/1", "software": f"conecal {__version__}", "result": str(result),
                "scan": str(scan), "stage": "fit-pose (free)", **out, "image_level": None,
                "units": {"residual": "px (measured - predicted)", "size": "px"}}

@@ -24,9 +24,16 @@ from .options import check_output, info
                    "distortion is per frame): cv2.remap(img, c + dc, r + dr, ...) removes it.")
 @click.option("-o", "--output", required=True, type=click.Path(dir_okay=False), callback=check_output,
               help="Output file: .npy for a numpy array, anything else for text (one view per row).")
-def command(result, scan, fmt, output):
+@click.option("--other-scan", "other_scan", is_flag=True,
+              help="--scan is not the scan RESULT was fitted on but another scan of the same system (e.g. the "
+                   "object's scan after a phantom calibration): use its log. Every axis it moves must be in RESULT.")
+def command(result, scan, fmt, output, other_scan):
     """Write the per-view geometry of RESULT (conecal-geometry/1 with --scan,
     or conecal-poses/1) in the sample frame.
+
+    --scan must be the scan RESULT was fitted on (its fingerprints are in
+    RESULT), or, with --other-scan, another scan of the same system whose
+    moving axes RESULT calibrated; anything else exits 2.
 
     Each view is the lab geometry seen from the sample at rest (the frame's
     sample-to-lab transform inverted). mm; pixel coordinates have the
@@ -50,7 +57,7 @@ def command(result, scan, fmt, output):
              f"largest displacement {peak:.3f} px")
         return
     s = load_scan(scan) if scan else None
-    g, frames, T, warnings = views(result, s)
+    g, frames, T, warnings = views(result, s, other_scan=other_scan)
     geoms = per_view(g, T)
     rows, cols = g.shape
     if fmt == "rtk":

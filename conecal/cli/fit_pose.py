@@ -7,6 +7,7 @@ import numpy as np
 
 from .. import __version__
 from ..errors import FitError
+from ..binding import check_scan
 from ..fit.markers import read_markers
 from ..fit.pose import PoseOptions, fit_helix, fit_poses, placement_errors
 from ..fit.pose import refine_geometry as refine_geometry_fn
@@ -64,6 +65,7 @@ def command(scan, markers, geometry, output, max_rms, prior_mm, prior_deg, initi
     """
     s = load_scan(scan)
     mdoc = read_markers(markers)
+    check_scan(mdoc, markers, s.root, option=None, parts=("projections",))
     if s.config.motion == "free":
         from .fit_pose_free import run_free
 

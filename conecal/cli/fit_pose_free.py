@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+import os
 from collections import Counter
+from pathlib import Path
 
 from .. import __version__
 from ..calib.bundle import FAMILIES
@@ -29,6 +31,9 @@ def run_free(s, scan, mdoc, markers, geometry, output, max_rms, distortion) -> N
         res = calibrate_free(s, mdoc, g, opt, progress=prog, say=info)
     header = {"format": POSES_FORMAT, "software": f"conecal {__version__}", "scan": str(scan),
               "markers_from": str(markers), "geometry_from": str(geometry) if geometry else "nominal"}
+    if output != "-":   # diagnose finds the markers from the result's folder, whatever the cwd
+        header["markers_from_relative"] = Path(os.path.relpath(Path(markers).resolve(),
+                                                               Path(output).resolve().parent)).as_posix()
     doc = free_document(res, opt, header)
     write_json(output, rounded(doc))
     sm = doc["summary"]

@@ -103,9 +103,11 @@ def cli(ctx, verbose, quiet):
 
 
 def _register():
-    from . import compare, detect, diagnose, export, fit_linear, fit_pose, fit_rotation, report, rp_grid, simulate
+    from . import compare, detect, diagnose, export, fit_linear, fit_pose, fit_rotation, merge, report, rp_grid, schema, \
+        simulate
 
-    for mod in (simulate, detect, fit_linear, fit_rotation, fit_pose, rp_grid, diagnose, report, export, compare):
+    for mod in (simulate, detect, merge, fit_linear, fit_rotation, fit_pose, rp_grid, diagnose, report, export, compare,
+                schema):
         cli.add_command(mod.command)
 
 

@@ -6,6 +6,8 @@ from pathlib import Path
 
 import click
 
+from ..binding import bound_scans
+from ..report.free import diagnosis_rms_line
 from ..jsonio import read_json
 
 
@@ -15,15 +17,16 @@ def _fmt(v, unit):
     return f"{v:.6g}" if unit != "mm" else f"{v:.4f}"
 
 
-def _truth_comparison(console, doc) -> None:
+def _truth_comparison(console, doc, path) -> None:
     """For a simulated scan (truth.json beside scan.yaml): the errors of the result."""
     import numpy as np
 
     from ..errors import InputError
     from ..geometry import ConeGeometry
 
-    truth_path = Path(str(doc.get("scan", ""))) / "truth.json"
-    if not truth_path.is_file():
+    scans = bound_scans(doc, path)
+    truth_path = scans[0] / "truth.json" if len(scans) == 1 else None
+    if truth_path is None or not truth_path.is_file():
         return
     try:
         truth = read_json(truth_path, "conecal-truth")
@@ -122,8 +125,7 @@ def command(results, out_dir, reconstruct):
         doc = read_json(path, ("conecal-geometry", "conecal-poses", "conecal-diagnosis"))
         if doc["format"].startswith("conecal-diagnosis"):
             console.print(f"[bold]{path}[/] — diagnose: {doc['verdict']}")
-            console.print(f"  residual RMS {doc['rms_px_before']:.4f} -> {doc['rms_px_after']:.4f} px "
-                          f"(noise floor {doc['noise_floor_px']:.4f} px)")
+            console.print(f"  {diagnosis_rms_line(doc)}")
             if "before" in doc:   # fit-pose: the holder's pose against the arm's model
                 b, a = doc["before"], doc["after"]
                 console.print(f"  holder pose RMS {b['rms_translation_mm']:.4f} -> {a['rms_translation_mm']:.4f} mm, "
@@ -158,7 +160,7 @@ def command(results, out_dir, reconstruct):
                           f"(seen in {pl.get('holder_views')} views)")
             if fit.get("at_search_bound"):
                 console.print(f"  [bold red]warning:[/] on the search bound: {', '.join(fit['at_search_bound'])}")
-            _truth_comparison(console, doc)
+            _truth_comparison(console, doc, path)
             if fit.get("undetermined"):
                 console.print(f"  [bold red]warning:[/] the data do not determine {', '.join(fit['undetermined'])}")
             continue
@@ -168,7 +170,7 @@ def command(results, out_dir, reconstruct):
         src = doc["source"]
         det = doc["detector"]
         console.print(f"  source {[round(x, 4) for x in src]} mm; detector origin {[round(x, 4) for x in det['origin']]} mm")
-        _truth_comparison(console, doc)
+        _truth_comparison(console, doc, path)
         if fit.get("undetermined"):
             console.print(f"  [bold red]warning:[/] the data do not determine {', '.join(fit['undetermined'])}")
             for combo in fit.get("null_combinations", []):

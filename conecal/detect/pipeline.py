@@ -97,6 +97,14 @@ def detect_scan(scan: Scan, opt: DetectOptions, *, workers: int = 2, lag: float 
     that fraction of the previous frame (in time) from each frame first, as
     ``diagnose`` measures it."""
     frames_idx = [int(f) for f in scan.log.frame]
+    opt, results = measure_frames(scan, opt, frames_idx, workers=workers, lag=lag, progress=progress)
+    return assemble(scan, opt, frames_idx, results)
+
+
+def scan_options(scan: Scan, opt: DetectOptions) -> DetectOptions:
+    """``opt`` with the scan's pixel noise, measured once on the middle frame of
+    the whole log (so that every shard of a scan uses the same)."""
+    frames_idx = [int(f) for f in scan.log.frame]
     if not opt.pixel_noise and frames_idx:
         # JPEG, 8-bit or scintillator-blurred frames: noise correlated over a
         # few px, which neighbour differences miss (then every marker looked
@@ -107,8 +115,17 @@ def detect_scan(scan: Scan, opt: DetectOptions, *, workers: int = 2, lag: float 
         mid = scan.stack.read(frames_idx[len(frames_idx) // 2], check=False)
         if np.isfinite(mid).all():
             opt = replace(opt, pixel_noise=noise_pixel(mid))
+    return opt
+
+
+def measure_frames(scan: Scan, opt: DetectOptions, frames_idx: list[int], *, workers: int = 2, lag: float = 0.0,
+                   progress: Callable[[int, int], None] | None = None) -> tuple[DetectOptions, list[list]]:
+    """The blobs of each frame in ``frames_idx`` (page numbers), before the
+    scan-wide contrast filter and tracking; and the options used."""
+    opt = scan_options(scan, opt)
+    all_idx = [int(f) for f in scan.log.frame]
     order = np.argsort(np.asarray(scan.log.time, float), kind="stable")
-    previous = {frames_idx[order[i]]: frames_idx[order[i - 1]] for i in range(1, len(order))}
+    previous = {all_idx[order[i]]: all_idx[order[i - 1]] for i in range(1, len(order))}
 
     def one(k):
         a = scan.stack.read(k, check=False)
@@ -145,6 +162,12 @@ def detect_scan(scan: Scan, opt: DetectOptions, *, workers: int = 2, lag: float 
             results.append(one(k))
             if progress:
                 progress(n, len(frames_idx))
+    return opt, results
+
+
+def assemble(scan: Scan, opt: DetectOptions, frames_idx: list[int], results: list[list]) -> dict:
+    """The markers document from every frame's blobs: scan-wide contrast
+    filter, identities across frames, frames in log order."""
     # Ghosts (detector lag) and faint blobs are sphere-shaped but far weaker
     # than the scan's markers, measured as attenuation per px of chord.
     mus = np.array([b.mu_px for res in results for b in res if not b.flags])
@@ -161,8 +184,10 @@ def detect_scan(scan: Scan, opt: DetectOptions, *, workers: int = 2, lag: float 
     frames = []
     rows, cols = scan.stack.shape
     for k, res, fid in zip(frames_idx, results, ids):
-        markers = [{"id": None if robot else int(i), "x": round(b.x, 6), "y": round(b.y, 6), "sigma": round(b.sigma, 6),
-                    "radius": round(b.radius, 4), "contrast": round(b.peak, 5), "flags": sorted(b.flags)}
+        # float(): Python's correctly rounded round(), the same for a part read back from JSON
+        markers = [{"id": None if robot else int(i), "x": round(float(b.x), 6), "y": round(float(b.y), 6),
+                    "sigma": round(float(b.sigma), 6), "radius": round(float(b.radius), 4),
+                    "contrast": round(float(b.peak), 5), "flags": sorted(b.flags)}
                    for b, i in sorted(zip(res, fid), key=lambda t: (t[1], t[0].x))]
         seen = set(fid)
         pos = len(frames)

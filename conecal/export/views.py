@@ -12,6 +12,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ..binding import check_scan
 from ..errors import InputError
 from ..geometry import ConeGeometry, RigidTransform
 from ..jsonio import atomic_write, read_json
@@ -32,11 +33,18 @@ def _chain_from_doc(doc: dict, path) -> Chain:
     return Chain(tuple(axes))
 
 
-def views(result_path, scan=None) -> tuple[ConeGeometry, list[int], RigidTransform, list[str]]:
+def views(result_path, scan=None, *, other_scan: bool = False) -> tuple[ConeGeometry, list[int], RigidTransform, list[str]]:
     """The lab geometry, frame numbers, sample-to-lab transforms per view and
     warnings, from a ``conecal-poses/1`` file or a ``conecal-geometry/1``
-    file plus its scan (whose log gives the readings)."""
+    file plus its scan (whose log gives the readings): the scan RESULT was
+    fitted on or, with ``other_scan``, another scan of the same system."""
     doc = read_json(result_path, ("conecal-geometry", "conecal-poses"))
+    if scan is not None:
+        check_scan(doc, result_path, scan.root, allow_other=other_scan, option="--other-scan")
+        if list(doc["detector"]["shape"]) != [scan.config.detector.rows, scan.config.detector.cols]:
+            raise InputError(f"{result_path}: detector.shape {list(doc['detector']['shape'])} differs from "
+                             f"{scan.root / 'scan.yaml'}'s detector ({scan.config.detector.rows} rows, "
+                             f"{scan.config.detector.cols} cols)")
     g = ConeGeometry.from_dict(doc)
     warnings = []
     if doc["format"].startswith("conecal-poses"):
@@ -55,6 +63,13 @@ def views(result_path, scan=None) -> tuple[ConeGeometry, list[int], RigidTransfo
     missing = [a for a in chain.names if a not in names]
     if missing:
         raise InputError(f"{scan.root / 'log.csv'}: has no column for axis {missing[0]!r} of {result_path}")
+    for name in names:
+        if name in chain.names or name in ("frame", "time"):
+            continue
+        col = np.asarray(scan.log.column(name), float)
+        if col.size and np.ptp(col) > 0:
+            raise InputError(f"{scan.root / scan.config.log}: column {name!r} moves ({col.min():g} to {col.max():g}) "
+                             f"but {result_path} has no axis {name!r}: its views would ignore that motion")
     q = np.column_stack([scan.log.column(a) for a in chain.names])
     return g, [int(f) for f in scan.log.frame], chain.transforms(q), warnings
 

@@ -6,6 +6,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ..binding import check_scan
 from ..errors import InputError
 from ..jsonio import read_json
 
@@ -34,6 +35,8 @@ def read_markers(path) -> dict:
     list of markers; every marker finite x, y, a positive sigma, an integer
     or null id and a list of flag strings. InputError names the place."""
     doc = read_json(path, "conecal-markers")
+    if doc.get("frame_range"):
+        raise InputError(f"{path}: frame_range: a part of a scan (detect --frames); join the parts with conecal merge")
     shape = (doc.get("detector") or {}).get("shape")
     if not (isinstance(shape, list) and len(shape) == 2 and all(isinstance(v, int) and v > 0 for v in shape)):
         shape = None
@@ -65,6 +68,7 @@ def read_markers(path) -> dict:
 
 def load_observations(path, scan, *, use_flagged: bool = False) -> Observations:
     doc = read_markers(path)
+    check_scan(doc, path, scan.root, option=None, parts=("projections",))
     shape = doc.get("detector", {}).get("shape")
     expect = [scan.config.detector.rows, scan.config.detector.cols]
     if shape is not None and list(shape) != expect:

@@ -7,7 +7,12 @@ direction (two tilts from nominal, deg) and a point on it (two offsets
 perpendicular to the nominal direction, mm; the position along the axis
 is not a property of the axis); the sample-frame position of every sphere
 but the reference one, which sits at the lab origin at zero readings and
-so is ``p = 0``; optionally the 9 detector parameters (bundle adjustment).
+so is ``p = 0`` (the contract's lab frame); optionally the 9 detector
+parameters (bundle adjustment). When no sphere's track follows the origin's
+nominal path (within ``REFERENCE_MM`` at the object) and source and
+detector are held, there is no reference: every sphere is free, and the
+depth of the whole scene along the beam rests on perspective alone (its
+sigma says how well; the fit reports it undetermined when it is not).
 Linear axes and rotary axes that do not move keep the values given.
 
 The model predicts what ``detect`` measures: the shadow centroid.
@@ -28,6 +33,8 @@ from .core import FitResult, Parameter, solve
 from .detector_params import DEG, UNITS as DETECTOR_UNITS, DetectorParams
 from .detector_params import NAMES as DETECTOR_NAMES
 from .markers import Observations
+
+REFERENCE_MM = 2.0   # a sphere nearer the lab origin's nominal path is the reference marker
 
 
 @dataclass(frozen=True, eq=False)
@@ -329,11 +336,20 @@ def fit_rotation(scans, obs_list, geometry: ConeGeometry, *, geometry_doc: dict 
         # the reference sphere: the track that follows the lab origin's path best
         origin_px = geometry.project(_chain(axes).transforms(rq).t)   # the sample origin's path
         dist = np.hypot(*(o.xy - origin_px).T)
-        ref = int(np.argmin([np.median(dist[local == s]) for s in range(len(ids))]))
+        med = [np.median(dist[local == s]) for s in range(len(ids))]
+        ref = int(np.argmin(med))
+        # at the object, mm: a sphere this near the origin's nominal path is the
+        # contract's reference marker (the nominal axis may be ~1 mm off)
+        ref_mm = med[ref] * geometry.pixel_pitch[0] / float(geometry.magnification(np.zeros((1, 3)))[0])
+        use_ref = refine_geometry or ref_mm < REFERENCE_MM
         base = len(labels)
         for s_, i in enumerate(ids):
             labels.append((k, i))
-            if s_ == ref:
+            # the lab origin is the reference marker's position at zero readings; a
+            # phantom with no sphere there (on a stage calibrated apart) must fit too:
+            # then every sphere is free, and only refining source and detector would
+            # need a reference to fix the gauge
+            if s_ == ref and use_ref:
                 refs.append(base + s_)
                 p0.append(np.zeros(3))
             else:

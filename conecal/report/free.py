@@ -114,3 +114,16 @@ def free_terminal(console, doc) -> None:
                   "  distortion: none claimed")
     sm = doc.get("summary", {})
     console.print(f"  {sm.get('ambiguous', 0)} ambiguous, {sm.get('rejected', 0)} rejected")
+
+
+def diagnosis_rms_line(doc: dict) -> str:
+    """The residual sentence of a diagnosis: before -> after against the noise
+    floor, or (free-pose: nothing refitted) the RMS and the reduced chi2."""
+    if doc.get("rms_px_before") is not None and doc.get("rms_px_after") is not None:
+        floor = doc.get("noise_floor_px")
+        return (f"residual RMS {doc['rms_px_before']:.4f} -> {doc['rms_px_after']:.4f} px"
+                + (f" (noise floor {floor:.4f} px)" if floor is not None else ""))
+    if doc.get("rms_px") is not None:
+        chi2 = doc.get("chi2_reduced")
+        return f"residual RMS {doc['rms_px']:.4f} px" + (f", reduced chi2 {chi2:.2f}" if chi2 is not None else "")
+    return "residual RMS not stated"

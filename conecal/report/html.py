@@ -15,8 +15,10 @@ from pathlib import Path
 import numpy as np
 
 from .. import __version__
+from ..binding import bound_scans
 from ..jsonio import atomic_write_text, read_json
 from . import plots
+from .free import diagnosis_rms_line
 
 FORMATS = ("conecal-geometry", "conecal-poses", "conecal-diagnosis")
 
@@ -125,8 +127,8 @@ def _diagnosis_section(path, doc) -> tuple[str, int]:
     parts = [f"<h2>{html.escape(str(path))} — diagnose {html.escape(str(doc.get('stage', '')))} on "
              f"{html.escape(str(doc.get('scan', '?')))}</h2>",
              f"<p><b>{html.escape(doc.get('verdict', ''))}</b></p>",
-             f"<p>Residual RMS {doc['rms_px_before']:.4f} → {doc['rms_px_after']:.4f} px (noise floor "
-             f"{doc['noise_floor_px']:.4f} px); held-out χ² gain {doc.get('heldout_gain_chi2', 0):.1f}.</p>"]
+             f"<p>{html.escape(diagnosis_rms_line(doc)).replace('->', '→').capitalize()}; held-out χ² gain "
+             f"{doc.get('heldout_gain_chi2') or 0:.1f}.</p>"]
     if "before" in doc:   # fit-pose: the holder's pose against the arm's model
         b, a = doc["before"], doc["after"]
         parts.append(f"<p>Holder pose RMS {b['rms_translation_mm']:.4f} → {a['rms_translation_mm']:.4f} mm, "
@@ -157,7 +159,7 @@ def _diagnosis_section(path, doc) -> tuple[str, int]:
     return "\n".join(parts), n
 
 
-def reconstruction_figure(doc) -> tuple[bytes, dict] | None:
+def reconstruction_figure(doc, path) -> tuple[bytes, dict] | None:
     """FDK (itk-rtk) of the scan behind an rp-grid result, nominal vs corrected:
     central slices and their sharpness. None when not possible here."""
     from ..consistency.misalignment import NAMES, misaligned
@@ -169,7 +171,7 @@ def reconstruction_figure(doc) -> tuple[bytes, dict] | None:
     try:
         from ..export.rtk import fdk_scan, sharpness
 
-        scan = load_scan(doc["scan"])
+        scan = load_scan(bound_scans(doc, path)[0])
     except (InputError, KeyError):
         return None
     nominal = scan.nominal_geometry()
@@ -199,7 +201,7 @@ def write_report(results: list, out_dir, *, reconstruct: bool = False) -> Path:
         else:
             extra = []
             if reconstruct:
-                rec = reconstruction_figure(doc)
+                rec = reconstruction_figure(doc, path)
                 if rec is not None:
                     extra.append((rec[0], "FDK (itk-rtk) central slice with the nominal and the corrected geometry; "
                                           "sharpness = gradient energy / signal energy (higher is sharper)."))
