@@ -94,7 +94,7 @@ def write_json(path: str | os.PathLike, doc: dict) -> None:
     atomic_write_text(path, dumps(doc))
 
 
-def read_json(path: str | os.PathLike, expected: str | tuple[str, ...]) -> dict:
+def read_json(path: str | os.PathLike, expected: str | tuple[str, ...], *, parts_ok: bool = False) -> dict:
     """Read a conecal JSON file and check its ``format`` key.
 
     ``expected`` is a format name without version (``conecal-markers``) or a
@@ -117,7 +117,10 @@ def read_json(path: str | os.PathLike, expected: str | tuple[str, ...]) -> dict:
         raise InputError(f"{path}: format is {fmt!r}, expected one of {', '.join(e + '/1' for e in expected)}")
     if version != "1":
         raise FormatVersionError(f"{path}: format {fmt!r} is newer than this conecal reads ({name}/1); upgrade conecal")
-    return check(doc, path)
+    check(doc, path)
+    if doc.get("frame_range") and not parts_ok:
+        raise InputError(f"{path}: frame_range: a part of a scan (--frames/--part); join the parts with conecal merge")
+    return doc
 
 
 def rounded(obj: Any, digits: int = 12) -> Any:

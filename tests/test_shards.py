@@ -79,3 +79,23 @@ def test_snakemake_runs_the_sharded_sample_pipeline(tmp_path):
     finally:
         os.chdir(cwd)
     assert (out / "whole.json").read_bytes() == (out / "rotation_markers.json").read_bytes()
+
+
+def test_robot_fit_pose_parts_merge_into_the_bytes_of_one_run(tmp_path):
+    scan = tmp_path / "robot"
+    assert run("simulate", "robot", scan, "--frames", "6", "--seed", "2").exit_code == 0
+    assert run("detect", scan, "-o", tmp_path / "m.json").exit_code == 0
+    for i in (1, 2):
+        r = run("fit-pose", scan, "--markers", tmp_path / "m.json", "--part", f"{i}/2", "-o", tmp_path / f"p{i}.json")
+        assert r.exit_code == 0, r.output
+    r = run("fit-pose", scan, "--markers", tmp_path / "m.json", "-o", tmp_path / "whole.json")
+    assert r.exit_code == 0, r.output
+    r = run("merge", tmp_path / "p2.json", tmp_path / "p1.json", "-o", tmp_path / "merged.json")
+    assert r.exit_code == 0, r.output
+    assert (tmp_path / "merged.json").read_bytes() == (tmp_path / "whole.json").read_bytes()
+    # a part is not a result: consumers ask for the merge
+    r = run("export", tmp_path / "p1.json", "--format", "astra", "-o", tmp_path / "v.txt")
+    assert r.exit_code == 2 and "conecal merge" in r.output
+    r = run("fit-pose", scan, "--markers", tmp_path / "m.json", "--part", "1/2", "--initial", "previous",
+            "-o", tmp_path / "x.json")
+    assert r.exit_code == 2 and not (tmp_path / "x.json").exists()

@@ -6,6 +6,7 @@ import click
 
 from ..detect import detect_scan, options_for_scan
 from ..jsonio import write_json
+from ..parts import selected_frames
 from ..scan import load_scan
 from .options import info, output_option, progress_bar, workers_option
 
@@ -46,26 +47,16 @@ def command(scan, output, workers, threshold, blur_px, diameter_px, lag, frame_r
     if diameter_px is not None and not 0 < diameter_px[0] < diameter_px[1]:
         raise click.BadParameter("need 0 < MIN < MAX", param_hint="--diameter-px")
     opt = options_for_scan(s, threshold=threshold, blur_px=blur_px, diameter_px=diameter_px)
-    if frame_range is not None and part is not None:
-        raise click.BadParameter("give --frames or --part, not both", param_hint="--part")
-    if frame_range is not None or part is not None:
+    idx = selected_frames(s, frame_range, part)
+    if idx is not None:
         from ..detect.pipeline import measure_frames
-        from ..detect.shards import parse_frames, parse_part, part_document
+        from ..detect.shards import part_document
 
-        if frame_range is not None:
-            a, b = parse_frames(frame_range, s)
-            idx = [int(k) for k in s.log.frame if a <= int(k) < b]
-        else:
-            idx = parse_part(part, s)
-            a, b = (min(idx), max(idx) + 1) if idx else (0, 0)
-        if not idx:
-            raise click.BadParameter(f"{frame_range or part}: no frame of the log is in this part",
-                                     param_hint="--frames" if frame_range else "--part")
         with progress_bar("detect") as prog:
             opt, results = measure_frames(s, opt, idx, workers=workers, lag=lag, progress=prog)
-        write_json(output, {**part_document(s, opt, idx, results, (a, b), lag), "scan": str(scan)})
-        info(f"wrote {output}: part {a}:{b} ({len(idx)} frames, {sum(map(len, results))} blobs); "
-             f"join the parts with conecal merge")
+        write_json(output, {**part_document(s, opt, idx, results, lag), "scan": str(scan)})
+        info(f"wrote {output}: a part, frames {idx[0]}..{idx[-1]} ({len(idx)} frames, {sum(map(len, results))} "
+             f"blobs); join the parts with conecal merge")
         return
     with progress_bar("detect") as prog:
         doc = detect_scan(s, opt, workers=workers, lag=lag, progress=prog)

@@ -6,13 +6,16 @@ import click
 import numpy as np
 
 from .. import __version__
-from ..errors import FitError
 from ..binding import check_scan
+from ..errors import FitError
 from ..fit.markers import read_markers
 from ..fit.pose import PoseOptions, fit_helix, fit_poses, placement_errors
+from ..fit.pose_parts import poses_totals
 from ..fit.pose import refine_geometry as refine_geometry_fn
 from ..geometry import ConeGeometry
 from ..jsonio import read_json, rounded, write_json
+from ..parts import frame_range as frame_range_of
+from ..parts import selected_frames
 from ..scan import load_scan
 from .options import info, output_option, progress_bar
 
@@ -41,8 +44,13 @@ POSES_FORMAT = "conecal-poses/1"
 @click.option("--refine-geometry", is_flag=True,
               help="Refine the detector centre jointly with all poses (one bundle adjustment; the lab frame "
                    "stays that of --geometry).")
+@click.option("--frames", "frame_range", default=None, metavar="START:STOP",
+              help="Robot scans: only frames START <= k < STOP: writes a part for `conecal merge` (not with "
+                   "--initial previous or --refine-geometry, which need every frame).")
+@click.option("--part", "part", default=None, metavar="I/N",
+              help="Robot scans: only the I-th of N nearly equal parts of the log, as with --frames.")
 def command(scan, markers, geometry, output, max_rms, prior_mm, prior_deg, initial, use_flagged, distortion,
-            refine_geometry):
+            refine_geometry, frame_range, part):
     """Estimate the holder's pose (P_lab = R p_holder + t) in every frame of SCAN.
 
     A motion: free scan (a C-arm or radiography set-up imaging a known
@@ -73,7 +81,15 @@ def command(scan, markers, geometry, output, max_rms, prior_mm, prior_deg, initi
             from ..errors import InputError
             raise InputError("--refine-geometry, --use-flagged, --initial: robot scans only (a free-pose fit always "
                              "refines the geometry and judges every marker by its own residual)")
+        if frame_range or part:
+            from ..errors import InputError
+            raise InputError("--frames/--part: robot scans only (a free-pose calibration is one bundle adjustment "
+                             "of every frame)")
         return run_free(s, scan, mdoc, markers, geometry, output, max_rms, distortion)
+    subset = selected_frames(s, frame_range, part)
+    if subset is not None and (initial == "previous" or refine_geometry):
+        from ..errors import InputError
+        raise InputError("--frames/--part: not with --initial previous or --refine-geometry, which need every frame")
     if max_rms is None:
         max_rms = 0.5
     if distortion != "auto":
@@ -87,9 +103,10 @@ def command(scan, markers, geometry, output, max_rms, prior_mm, prior_deg, initi
         raise InputError(f"{s.root / 'scan.yaml'}: markers.phantom: fit-pose needs a holder phantom.csv")
     helix = fit_helix(s.phantom.positions[np.argsort(s.phantom.ids)])
     with progress_bar("fit-pose") as prog:
-        poses, R_log, t_log = fit_poses(s, mdoc, g, opt, initial=initial, use_flagged=use_flagged, progress=prog)
+        poses, R_log, t_log = fit_poses(s, mdoc, g, opt, initial=initial, use_flagged=use_flagged, progress=prog,
+                                        frames=None if subset is None else set(subset))
     ok = [p for p in poses if p.status == "ok"]
-    if not ok:
+    if not ok and subset is None:
         raise FitError(f"no frame could be fitted; first reason: {poses[0].status if poses else 'no frames'}")
     bundle = None
     if refine_geometry:
@@ -112,22 +129,23 @@ def command(scan, markers, geometry, output, max_rms, prior_mm, prior_deg, initi
                        "rms_px": p.rms_px, "n_spheres": p.n_spheres, "sphere_ids": p.ids, "placement_error": pe,
                        "found_by": p.found_by})
         frames.append(fr)
-    rms_all = float(np.sqrt(np.mean(np.concatenate([p.residual_px.ravel() for p in ok]) ** 2)))
+    frames = rounded(frames)   # totals from the rounded frames: a merge of parts computes the same
+    totals = rounded(poses_totals(frames))
+    rms_all = totals["summary"]["rms_px"]
     doc = {"format": POSES_FORMAT, "software": f"conecal {__version__}", "scan": str(scan),
            "geometry_from": str(geometry) if geometry else "nominal", **g.to_dict(),
            "units": {"t": "mm", "R": "rotation matrix, P_lab = R p_holder + t", "rms_px": "px",
                      "sigma_rotation_deg": "deg (rotation vector components)", "sigma_translation_mm": "mm"},
            "options": {"max_rms_px": max_rms, "prior_mm": prior_mm, "prior_deg": prior_deg, "initial": initial},
-           "helix": helix, "placement": place["summary"], "bundle_adjustment": bundle,
-           "summary": {"frames": len(poses), "ok": len(ok), "rejected": len(poses) - len(ok),
-                       "rejection_rate": (len(poses) - len(ok)) / len(poses), "rms_px": rms_all},
-           "frames": frames}
+           "helix": helix, "bundle_adjustment": bundle, **totals, "frames": frames}
+    if subset is not None:
+        doc["frame_range"] = frame_range_of(subset)
     write_json(output, rounded(doc))
     info(f"wrote {output}: {len(ok)}/{len(poses)} frames ok, reprojection RMS {rms_all:.4f} px; "
          f"helix radius {helix['radius_mm']:.3f} mm, pitch {helix['pitch_mm_per_turn']:.3f} mm/turn, "
          f"CAD residual {helix['rms_mm']:.4f} mm RMS")
-    if place["summary"]:
-        ps = place["summary"]
+    if totals["placement"]:
+        ps = totals["placement"]
         info(f"robot placement error: offset mean {np.round(ps['offset_mean_mm'], 3).tolist()} mm "
              f"(max {ps['offset_max_mm']:.3f} mm), rotation mean {ps['rotation_mean_deg']:.3f} deg "
              f"(max {ps['rotation_max_deg']:.3f} deg)")

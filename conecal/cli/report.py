@@ -6,8 +6,8 @@ from pathlib import Path
 
 import click
 
-from ..binding import bound_scans
 from ..report.free import diagnosis_rms_line
+from ..report.summary import geometry_rows, truth_lines
 from ..jsonio import read_json
 
 
@@ -18,38 +18,17 @@ def _fmt(v, unit):
 
 
 def _truth_comparison(console, doc, path) -> None:
-    """For a simulated scan (truth.json beside scan.yaml): the errors of the result."""
-    import numpy as np
+    for line in truth_lines(doc, path):
+        console.print(f"  {line}")
 
-    from ..errors import InputError
-    from ..geometry import ConeGeometry
 
-    scans = bound_scans(doc, path)
-    truth_path = scans[0] / "truth.json" if len(scans) == 1 else None
-    if truth_path is None or not truth_path.is_file():
-        return
-    try:
-        truth = read_json(truth_path, "conecal-truth")
-    except InputError:
-        return
-    if truth.get("misalignment") and doc.get("misalignment"):
-        console.print("  vs truth: " + ", ".join(
-            f"{n} {doc['misalignment'][n]['value'] - v:+.4f}" for n, v in truth["misalignment"].items()
-            if n in doc["misalignment"]))
-    g, t = ConeGeometry.from_dict(doc), ConeGeometry.from_dict(truth["geometry"])
-    ang = np.degrees(np.arccos(np.clip(np.dot(g.normal, t.normal), -1, 1)))
-    axis = truth.get("rotary_axis")
-    fitted = next((a for a in doc.get("axes", []) if a.get("calibrated_here") and a.get("type") == "rotary"), None)
-    if axis and fitted:
-        d = np.asarray(fitted["direction"])
-        dp = np.asarray(fitted["point"]) - axis["point"]
-        dp -= (dp @ d) * d
-        console.print(f"  vs truth: rotary axis {fitted['name']} direction "
-                      f"{np.degrees(np.arccos(min(1.0, abs(d @ axis['direction'])))):.5f} deg, "
-                      f"point {np.linalg.norm(dp):.5f} mm")
-    console.print(f"  vs truth ({truth_path}): source {np.linalg.norm(g.source - t.source):.4f} mm, "
-                  f"detector centre {np.linalg.norm(g.detector_centre - t.detector_centre):.4f} mm, "
-                  f"detector normal {ang:.4f} deg, u {np.degrees(np.arccos(np.clip(g.u @ t.u, -1, 1))):.4f} deg")
+def _summary(console, doc) -> None:
+    rows = {k: (v, u) for k, v, u in geometry_rows(doc)}
+    pick = [k for k in rows if k.startswith(("SOD", "SDD", "magnification", "principal", "detector tilt",
+                                             "detector in-plane", "rotation axis", "reference sphere"))]
+    for k in pick:
+        v, u = rows[k]
+        console.print(f"  {k}: {v} {u}".rstrip())
 
 
 def _report_poses(console, path, doc) -> None:
@@ -160,6 +139,7 @@ def command(results, out_dir, reconstruct):
                           f"(seen in {pl.get('holder_views')} views)")
             if fit.get("at_search_bound"):
                 console.print(f"  [bold red]warning:[/] on the search bound: {', '.join(fit['at_search_bound'])}")
+            _summary(console, doc)
             _truth_comparison(console, doc, path)
             if fit.get("undetermined"):
                 console.print(f"  [bold red]warning:[/] the data do not determine {', '.join(fit['undetermined'])}")
@@ -170,6 +150,7 @@ def command(results, out_dir, reconstruct):
         src = doc["source"]
         det = doc["detector"]
         console.print(f"  source {[round(x, 4) for x in src]} mm; detector origin {[round(x, 4) for x in det['origin']]} mm")
+        _summary(console, doc)
         _truth_comparison(console, doc, path)
         if fit.get("undetermined"):
             console.print(f"  [bold red]warning:[/] the data do not determine {', '.join(fit['undetermined'])}")

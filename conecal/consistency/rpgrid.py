@@ -1234,10 +1234,10 @@ def jackknife_sigma(prob: RPProblem, H, J, psi, free, groups: int = 12) -> np.nd
 
 def cost_slices(prob: RPProblem, x, opt: RPOptions, n: int = 41) -> dict:
     """The cost along each parameter through ``x`` (the others held), over
-    the grid range (the paper's Figures 7 and 8)."""
+    the grid range's width centred on ``x`` (the paper's Figures 7 and 8)."""
     out = {}
     for k, name in enumerate(NAMES):
-        vals = np.linspace(-opt.ranges[name], opt.ranges[name], n)
+        vals = x[k] + np.linspace(-opt.ranges[name], opt.ranges[name], n)
         costs = []
         for val in vals:
             q = np.array(x, float)

@@ -35,8 +35,6 @@ def read_markers(path) -> dict:
     list of markers; every marker finite x, y, a positive sigma, an integer
     or null id and a list of flag strings. InputError names the place."""
     doc = read_json(path, "conecal-markers")
-    if doc.get("frame_range"):
-        raise InputError(f"{path}: frame_range: a part of a scan (detect --frames); join the parts with conecal merge")
     shape = (doc.get("detector") or {}).get("shape")
     if not (isinstance(shape, list) and len(shape) == 2 and all(isinstance(v, int) and v > 0 for v in shape)):
         shape = None

@@ -327,23 +327,31 @@ def placement_errors(poses: list[FramePose], R_log: np.ndarray, t_log: np.ndarra
         w = matrix_to_rotvec(dR)
         per.append({"offset_mm": (p.t - tl).tolist(), "rotation_deg": float(np.degrees(np.linalg.norm(w))),
                     "rotation_vector_deg": np.degrees(w).tolist()})
+    return {"frames": per, "summary": placement_summary(per)}
+
+
+def placement_summary(per: list[dict | None]) -> dict | None:
+    """Statistics of the per-frame placement errors of the ``ok`` frames (None: no frame)."""
     ok = [e for e in per if e is not None]
     if not ok:
-        return {"frames": per, "summary": None}
+        return None
     off = np.array([e["offset_mm"] for e in ok])
     rot = np.array([e["rotation_deg"] for e in ok])
-    return {"frames": per, "summary": {
-        "offset_mean_mm": off.mean(0).tolist(), "offset_std_mm": off.std(0).tolist(),
-        "offset_max_mm": float(np.linalg.norm(off, axis=1).max()),
-        "rotation_mean_deg": float(rot.mean()), "rotation_std_deg": float(rot.std()), "rotation_max_deg": float(rot.max())}}
+    return {"offset_mean_mm": off.mean(0).tolist(), "offset_std_mm": off.std(0).tolist(),
+            "offset_max_mm": float(np.linalg.norm(off, axis=1).max()),
+            "rotation_mean_deg": float(rot.mean()), "rotation_std_deg": float(rot.std()),
+            "rotation_max_deg": float(rot.max())}
 
 
 def fit_poses(scan, markers_doc: dict, geometry: ConeGeometry, opt: PoseOptions, *, initial: str = "log",
-              use_flagged: bool = False, progress=None) -> tuple[list[FramePose], np.ndarray, np.ndarray]:
+              use_flagged: bool = False, progress=None,
+              frames: set[int] | None = None) -> tuple[list[FramePose], np.ndarray, np.ndarray]:
     """Poses of every frame of a robot scan. ``initial``: 'log' (the joint
     log through the DH model) or 'previous' (the last good frame's placement
     error carried to this frame's log pose; the log where there is none).
-    Returns the poses and the joint-log rotations and translations."""
+    ``frames``: only these frame numbers (a part of the scan).
+    Returns the poses and the joint-log rotations and translations (of
+    those frames)."""
     from ..errors import InputError
     from .markers import BIASING_FLAGS
 
@@ -357,7 +365,9 @@ def fit_poses(scan, markers_doc: dict, geometry: ConeGeometry, opt: PoseOptions,
     screw = helix_screw(fit_helix(pts[order]))
     poses = []
     carry = None  # (R_err, t_err): last good pose relative to its log pose
-    for k, frame in enumerate(scan.log.frame):
+    rows = [k for k, f in enumerate(scan.log.frame) if frames is None or int(f) in frames]
+    for n_done, k in enumerate(rows, 1):
+        frame = scan.log.frame[k]
         ms = [m for m in by_frame.get(int(frame), []) if use_flagged or not set(m.get("flags", [])) & set(BIASING_FLAGS)]
         xy = np.array([[m["x"], m["y"]] for m in ms]).reshape(-1, 2)
         sg = np.array([m["sigma"] for m in ms])
@@ -374,8 +384,8 @@ def fit_poses(scan, markers_doc: dict, geometry: ConeGeometry, opt: PoseOptions,
             carry = (dR, p.t - T.t[k], T.t[k])
         poses.append(p)
         if progress:
-            progress(k + 1, len(scan.log))
-    return poses, T.R, T.t
+            progress(n_done, len(rows))
+    return poses, T.R[rows], T.t[rows]
 
 
 def rescue_frame(frame, geometry, pts, ids, radius, xy, sg, R_log, t_log, opt, screw, failed: FramePose) -> FramePose:

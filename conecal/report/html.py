@@ -19,6 +19,7 @@ from ..binding import bound_scans
 from ..jsonio import atomic_write_text, read_json
 from . import plots
 from .free import diagnosis_rms_line
+from .summary import geometry_rows, truth_lines
 
 FORMATS = ("conecal-geometry", "conecal-poses", "conecal-diagnosis")
 
@@ -72,10 +73,19 @@ def _param_table(fit: dict) -> str:
             + "".join(rows) + "</table>")
 
 
+def _summary_table(doc, path) -> str:
+    rows = "".join(f"<tr><td>{html.escape(k)}</td><td class=num>{html.escape(v)}</td><td>{html.escape(u)}</td></tr>"
+                   for k, v, u in geometry_rows(doc))
+    truth = "".join(f"<li>{html.escape(line)}</li>" for line in truth_lines(doc, path))
+    return (f"<table><tr><th>set-up (lab frame)</th><th>value</th><th>unit</th></tr>{rows}</table>"
+            + (f"<p>Against the simulation's truth:</p><ul>{truth}</ul>" if truth else ""))
+
+
 def _geometry_section(path, doc, extra_figures) -> tuple[str, int]:
     fit = doc.get("fit", {})
     stage = doc.get("stage", "?")
     parts = [f"<h2>{html.escape(str(path))} — {html.escape(stage)} on {html.escape(str(doc.get('scan', '?')))}</h2>"]
+    parts.append(_summary_table(doc, path))
     parts.append(_param_table(fit))
     if stage == "rp-grid":
         pl = fit.get("planes", {})
@@ -104,7 +114,8 @@ def _geometry_section(path, doc, extra_figures) -> tuple[str, int]:
 def _poses_section(path, doc) -> tuple[str, int]:
     sm = doc.get("summary", {})
     parts = [f"<h2>{html.escape(str(path))} — fit-pose on {html.escape(str(doc.get('scan', '?')))}</h2>",
-             f"<p>{sm.get('ok')}/{sm.get('frames')} frames ok, reprojection RMS {_fmt(sm.get('rms_px'))} px.</p>"]
+             f"<p>{sm.get('ok')}/{sm.get('frames')} frames ok, reprojection RMS {_fmt(sm.get('rms_px'))} px.</p>",
+             _summary_table(doc, path)]
     pl = doc.get("placement")
     if pl:
         parts.append(f"<p>Robot placement error: offset mean {np.round(pl['offset_mean_mm'], 3).tolist()} mm, "

@@ -27,6 +27,14 @@ def _plt():
 def _png(fig) -> bytes:
     plt = _plt()
     buf = io.BytesIO()
+    import warnings
+
+    with warnings.catch_warnings():   # labels of neighbouring panels must not overlap
+        warnings.simplefilter("ignore")
+        try:
+            fig.tight_layout()
+        except (ValueError, RuntimeError):
+            pass
     fig.savefig(buf, format="png", dpi=90, bbox_inches="tight")
     plt.close(fig)
     return buf.getvalue()
@@ -50,8 +58,9 @@ def residual_vectors(doc) -> bytes | None:
     mag = np.sqrt(r["dx"] ** 2 + r["dy"] ** 2)
     scale = 0.1 * max(rows, cols) / max(float(np.percentile(mag, 95)), 1e-9)
     fig, ax = plt.subplots(figsize=(5.5, 5.5 * rows / cols))
-    ax.quiver(r["x"], r["y"], r["dx"] * scale, r["dy"] * scale, mag, angles="xy", scale_units="xy", scale=1,
-              cmap="viridis", width=0.004)
+    q = ax.quiver(r["x"], r["y"], r["dx"] * scale, r["dy"] * scale, mag, angles="xy", scale_units="xy", scale=1,
+                  cmap="viridis", width=0.004)
+    fig.colorbar(q, ax=ax, label="|residual| (px)", shrink=0.8)
     ax.set_xlim(0, cols)
     ax.set_ylim(rows, 0)
     ax.set_aspect("equal")
@@ -139,8 +148,10 @@ def cost_slices(doc) -> bytes | None:
             ax.axvline(est[n]["value"], color="r", lw=0.8)
         ax.set_xlabel(n, fontsize=8)
         ax.tick_params(labelsize=7)
+        ax.xaxis.set_major_locator(plt.MaxNLocator(4))
+        ax.yaxis.set_major_locator(plt.MaxNLocator(4))
     np.atleast_1d(axes)[0].set_ylabel("c_RP")
-    fig.suptitle("cost slices through the optimum (red: estimate)", fontsize=9)
+    fig.suptitle("cost slices through the estimate (red), centred on it", fontsize=9)
     return _png(fig)
 
 
@@ -155,7 +166,8 @@ def placement(doc) -> bytes | None:
     fr = np.array([f["frame"] for f in frames])
     rms = np.array([f["rms_px"] for f in frames])
     fig, (a1, a2, a3) = plt.subplots(1, 3, figsize=(12, 3.3))
-    a1.scatter(off[:, 0], off[:, 1], c=off[:, 2], s=10, cmap="coolwarm")
+    sc = a1.scatter(off[:, 0], off[:, 1], c=off[:, 2], s=10, cmap="coolwarm")
+    fig.colorbar(sc, ax=a1, label="offset z (mm)")
     a1.set_xlabel("offset x (mm)")
     a1.set_ylabel("offset y (mm)")
     a1.set_title("placement error (colour: z)", fontsize=9)
