@@ -451,3 +451,24 @@ def test_restarts_along_v_leave_a_local_minimum_for_a_lower_one():
     again, _, _ = rpgrid.restart_along_v(prob, opt, new, scale)
     assert again is new
     assert rpgrid.restart_along_v(prob, rpgrid.RPOptions(v_restarts_px=()), fit, scale)[0] is fit
+
+
+def test_an_object_filling_the_field_of_view_fails_before_the_tables(small_circular, tmp_path):
+    """No usable plane: said after a few views' tables, not after the whole scan's."""
+    import shutil
+    import time
+
+    import tifffile
+    from click.testing import CliRunner
+
+    from conecal.cli.main import cli
+
+    scan = tmp_path / "full"
+    shutil.copytree(small_circular, scan)
+    stack = tifffile.imread(scan / "projections.tif")
+    r, c = np.mgrid[0:stack.shape[1], 0:stack.shape[2]]
+    tifffile.imwrite(scan / "projections.tif", (stack + 0.8 + 0.1 * np.sin(r / 7.0) * np.cos(c / 9.0)).astype(np.float32))
+    t0 = time.perf_counter()
+    res = CliRunner().invoke(cli, ["rp-grid", str(scan), "-o", str(tmp_path / "rp.json")])
+    assert res.exit_code == 1 and "0 usable planes" in res.output and "before the tables" in res.output, res.output
+    assert time.perf_counter() - t0 < 20 and not (tmp_path / "rp.json").exists()

@@ -501,7 +501,7 @@ class RPProblem:
         h = np.hypot(a, b)
         return a, b, c, h, np.arctan2(b, a), -c / h
 
-    def select(self, p, motion_px: float | None = None) -> dict:
+    def select(self, p, motion_px: float | None = None, min_planes: int = 50) -> dict:
         """Keep the planes whose lines cross the region in both views and
         leave it through untruncated border stretches (at geometry ``p``)."""
         f = _frame(misaligned(self.nominal, p), self.tab.ref)
@@ -534,7 +534,7 @@ class RPProblem:
         self.keep = keep
         self._p_sel = np.array(p, float)
         self._kept = self._arrays(np.flatnonzero(keep), self._p_sel)
-        if keep.sum() < 50:
+        if keep.sum() < min_planes:
             raise FitError(f"rp-grid: only {int(keep.sum())} usable planes after excluding truncated ones "
                            f"(of {len(keep)}); the object fills the field of view everywhere")
         self.last_selection = {"candidates": int(len(keep)), "used": int(keep.sum()),
@@ -1314,6 +1314,14 @@ def run(scan, opt: RPOptions, progress=None) -> tuple[RPResult, RPProblem]:
                 progress(offset + done, total)
         return cb
 
+    # the cheap test first: a few views tell whether any plane is usable at all
+    # (an object filling the field of view), before the tables of the whole scan
+    probe = np.unique(np.linspace(0, n - 1, min(n, 16)).round().astype(int))
+    try:
+        RPProblem(nominal, T_all[probe], build_tables(images(probe), len(probe), nominal, opt), axis,
+                  opt).select(np.zeros(5), min_planes=1)
+    except FitError as exc:
+        raise FitError(f"{exc} (seen on {len(probe)} views, before the tables of all {n})") from None
     t0 = time.perf_counter()
     tab1 = build_tables(images(first), len(first), nominal, opt, progress=prog(0))
     prob1 = RPProblem(nominal, T_all[first], tab1, axis, opt)
