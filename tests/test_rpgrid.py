@@ -378,7 +378,7 @@ def test_slice_sigma_follows_the_profile_of_a_correlated_parameter(monkeypatch):
             d = q - m
             return float(d @ H @ d)
 
-    monkeypatch.setattr(rpgrid, "_pair_batches", lambda prob, x, seed, batches: minima)
+    monkeypatch.setattr(rpgrid.sigma, "_pair_batches", lambda prob, x, seed, batches: minima)
     opt = rpgrid.RPOptions()
     x = np.zeros(5)
     held = rpgrid.slice_sigma(Prob(), opt, x)
