@@ -7,6 +7,7 @@ from conecal.simulate import robot_helix
 from conecal.simulate.scenarios import marker_truth
 from conecal.scan import load_scan
 from conecal.fit.pose import fit_poses, PoseOptions
+from conecal.calib.rescue import rescue_frame
 from conecal.simulate import write_scan
 import yaml, tifffile
 # markers level robot scan with the log far off (clusters near 10 mm / 25 deg)
@@ -29,7 +30,7 @@ m={"format":"conecal-markers/1","frames":frames}
 s=load_scan(d)
 for rescue in (False, True):
     t0=time.time()
-    poses,_,_=fit_poses(s,m,sc.geometry,PoseOptions(rescue=rescue))
+    poses,_,_=fit_poses(s,m,sc.geometry,PoseOptions(rescue=rescue),rescue=rescue_frame)
     ok=[p for p in poses if p.status=='ok']
     wrong=sum(np.linalg.norm(p.t-T.t[p.frame])>0.5 or np.degrees(np.arccos(np.clip((np.trace(p.R@T.R[p.frame].T)-1)/2,-1,1)))>0.5 for p in ok)
     print('rescue', rescue, f'{len(ok)}/{len(poses)} ok, wrong {wrong}, found by search {sum(p.found_by!="log" for p in ok)}, {time.time()-t0:.1f} s')

@@ -222,3 +222,28 @@ def test_image_shift_jacobian_moves_only_the_own_shadow(tmp_path):
     # the whole patch's gradient moves the ghost too: off by the lag's share and more
     gy_all, gx_all = np.gradient(A)
     assert np.abs(gx_all - gx).max() > 0.03 * np.abs(gx).max()
+
+
+def test_runout_ellipse_candidate_moves_the_axis_as_stated():
+    """The ellipse member's four numbers are the axis' displacement across and
+    along the beam; with nothing along the beam it is the across-only member."""
+    from conecal.diagnose.candidates import _runout, _runout_ellipse
+    from conecal.effects.motion import RunoutRotaryAxis
+    from conecal.geometry.rotations import orthonormal_complement
+
+    d, beta, x = np.array([0.0, 1.0, 0.0]), 0.7, [0.01, -0.02, 0.005, 0.012]
+    e1, e2 = orthonormal_complement(d)
+    across, along = np.cos(beta) * e1 + np.sin(beta) * e2, -np.sin(beta) * e1 + np.cos(beta) * e2
+    q = np.array([0.0, 17.0, 100.0, 233.0])
+    for k in (2, 3):
+        r = _runout_ellipse("theta", k, beta, x)
+        axis = RunoutRotaryAxis("theta", d, np.zeros(3), harmonic=k, forward=r.amplitude,
+                                forward_phase=np.deg2rad(r.phase), backward=r.backward,
+                                backward_phase=np.deg2rad(r.backward_phase))
+        kq = k * np.deg2rad(q)
+        want = (x[0] * np.cos(kq) + x[1] * np.sin(kq))[:, None] * across \
+            + (x[2] * np.cos(kq) + x[3] * np.sin(kq))[:, None] * along
+        assert np.allclose(axis.transforms(q).t, want, atol=1e-15)
+        a, b = _runout("theta", k, beta, x[:2]), _runout_ellipse("theta", k, beta, [x[0], x[1], 0.0, 0.0])
+        assert np.isclose(a.amplitude, b.amplitude) and np.isclose(a.backward, b.backward)
+        assert np.isclose((a.phase - b.phase + 180) % 360 - 180, 0, atol=1e-9)

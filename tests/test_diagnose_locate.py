@@ -63,7 +63,7 @@ def test_locate_finds_the_variable_and_the_shape(kind):
     top = found[0]
     assert top["component"] == "rotation about axis theta"
     want = {"harmonic3": ("theta", "harmonic 3"), "direction": ("direction of theta", "direction"),
-            "jump": ("frame", "jump after the 40th"), "time": ("time", "")}[kind]
+            "jump": ("time", "jump after the 40th"), "time": ("time", "")}[kind]
     assert top["variable"] == want[0] and want[1] in top["shape"], top
     assert abs(top["size"] - np.std(signal)) < 0.3 * np.std(signal) + 0.005
     assert top["variable"] in describe(top)

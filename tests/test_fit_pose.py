@@ -126,7 +126,7 @@ def test_bundle_adjustment_recovers_the_detector_centre(robot_scan, tmp_path):
 
 def test_a_frame_the_log_cannot_start_is_found_by_the_pattern_search(robot_scan):
     from conecal.detect import detect_scan, options_for_scan
-    from conecal.fit.pose import rescue_frame
+    from conecal.calib.rescue import rescue_frame
     from conecal.scan import load_scan
 
     s = load_scan(robot_scan)

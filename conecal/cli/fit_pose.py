@@ -7,6 +7,7 @@ import numpy as np
 
 from .. import __version__
 from ..binding import check_scan
+from ..calib.rescue import rescue_frame
 from ..errors import FitError
 from ..fit.markers import read_markers
 from ..fit.pose import PoseOptions, fit_helix, fit_poses, placement_errors
@@ -104,7 +105,7 @@ def command(scan, markers, geometry, output, max_rms, prior_mm, prior_deg, initi
     helix = fit_helix(s.phantom.positions[np.argsort(s.phantom.ids)])
     with progress_bar("fit-pose") as prog:
         poses, R_log, t_log = fit_poses(s, mdoc, g, opt, initial=initial, use_flagged=use_flagged, progress=prog,
-                                        frames=None if subset is None else set(subset))
+                                        frames=None if subset is None else set(subset), rescue=rescue_frame)
     ok = [p for p in poses if p.status == "ok"]
     if not ok and subset is None:
         raise FitError(f"no frame could be fitted; first reason: {poses[0].status if poses else 'no frames'}")

@@ -213,6 +213,7 @@ def locate(model, curves: FrameCurves, alpha: float = 0.01) -> list[dict]:
     variables = _row_variables(model, rows)
     times = np.asarray(model.times, float)[rows]
     trials = []   # (component, variable, shape, drop, dof, curve)
+    jump_at = {}  # trial -> time (s) of the first frame after its jump
     for k, name in enumerate(curves.names):
         y, s = curves.values[:, k], curves.sigma[:, k]
         ok = np.isfinite(y) & np.isfinite(s) & (s > 0)
@@ -223,9 +224,11 @@ def locate(model, curves: FrameCurves, alpha: float = 0.01) -> list[dict]:
             d, curve, _ = _wls_drop(yk, wk, B[ok])
             trials.append((k, ok, var, shape, B[ok], d, B.shape[1], curve))
         # a jump at one frame onwards: a scan over positions, Bonferroni over them
-        d, cut, curve = _jump_scan(yk, wk, np.argsort(times[ok], kind="stable"))
+        order = np.argsort(times[ok], kind="stable")
+        d, cut, curve = _jump_scan(yk, wk, order)
         if cut is not None:
-            trials.append((k, ok, "frame", f"jump after the {cut}th frame in time", None, d, ("jump", ok.sum()), curve))
+            jump_at[len(trials)] = float(times[ok][order[cut]])
+            trials.append((k, ok, "time", f"jump after the {cut}th frame in time", None, d, ("jump", ok.sum()), curve))
     if not trials:
         return []
     pvals = []
@@ -275,7 +278,8 @@ def locate(model, curves: FrameCurves, alpha: float = 0.01) -> list[dict]:
         out.append({"component": name, "unit": curves.units[k], "variable": tb[2], "shape": tb[3],
                     "size": size, "size_px": size_px, "p_adjusted": float(adj[best]),
                     "chi2_explained": float(tb[5]), "chi2_total": float(np.sum(wk * (yk - np.sum(wk * yk) / np.sum(wk)) ** 2)),
-                    "frames": int(ok.sum()), "also_follows": also})
+                    "frames": int(ok.sum()), "also_follows": also,
+                    **({"at_time": jump_at[best]} if best in jump_at else {})})
     out.sort(key=lambda d: -d["size_px"])
     return out
 

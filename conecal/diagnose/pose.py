@@ -199,7 +199,7 @@ class PoseModel:
 
 def candidates(model: PoseModel) -> list:
     """Every robot effect this recording could show, parameterised."""
-    from .candidates import Candidate
+    from .candidate import Candidate
 
     out = []
     q = model.readings

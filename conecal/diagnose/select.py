@@ -19,7 +19,7 @@ from scipy.optimize import least_squares
 
 from .candidates import Candidate, candidates  # noqa: F401  (Candidate: re-exported for callers)
 from .locate import describe, detector_field, frame_curves, locate
-from .model import EllipseCentreBias
+from .model import EllipseCentreBias, ReadingJump
 from .structure import structure_tests
 
 
@@ -379,6 +379,12 @@ def diagnose(model, *, alpha: float = 0.01, progress=None, tie_breaker=None) -> 
     rms_after = model.rms_px(final["effects"], final["x9"])
     adequacy = None
     partial = []
+    descriptions = []
+    for c in jump_descriptions(model, located):
+        e = evaluate(model, [c])
+        x, sg = e["x"][nb:], e["sigma"][nb:]
+        descriptions.append({"description": c.label, "statement": c.describe(x, sg), "parameters": {"amount": float(x[0])},
+                             "rms_px_after": model.rms_px(e["effects"], e["x9"]), **score(base, e, c.k)})
     if chosen:
         remaining = located_mismatches(model, final["effects"], final["x9"], alpha)
         adequacy = {"rms_px_after": rms_after, "noise_floor_px": floor, "limit": ADEQUATE_RMS,
@@ -388,8 +394,16 @@ def diagnose(model, *, alpha: float = 0.01, progress=None, tie_breaker=None) -> 
         adequacy["time_blocks"] = blocks
         adequacy["adequate"] = bool(adequacy["rms_ok"] and not adequacy["structure_left"]
                                     and (blocks is None or blocks["passed"]))
+        chosen_bic = float(base["bic"] - final["bic"])
+        better = [d for d in descriptions if d["bic_gain"] >= chosen_bic]
+        if better:   # a plain jump describes it better than the named smooth effects
+            adequacy.update(adequate=False, beaten_by=f"{better[0]['statement']} (BIC gain {better[0]['bic_gain']:.0f} "
+                                                      f"against {chosen_bic:.0f})")
         if not adequacy["adequate"]:
             partial, found = found, []
+    if not chosen and descriptions and descriptions[0]["claimable"]:
+        adequacy = {"described_by": f"{descriptions[0]['statement']} takes the RMS to "
+                                    f"{descriptions[0]['rms_px_after']:.4f} px"}
     verdict = _verdict(found, partial, ambiguous, located, adequacy, model.rms_px(None, b0), floor)
     point = point_model_cost(model, base)
     if point is not None and not any(f["effect"] == "ellipse_centre_bias" for f in found):
@@ -401,6 +415,7 @@ def diagnose(model, *, alpha: float = 0.01, progress=None, tie_breaker=None) -> 
         "partial": partial,
         "located": located,
         "not_tried": not_tried,
+        "descriptions": descriptions,
         "adequacy": adequacy,
         "ambiguous_with": ambiguous if found else [],
         "candidates": rows,
@@ -431,12 +446,37 @@ def located_mismatches(model, effects, base, alpha: float) -> list[dict]:
     return sorted(out, key=lambda d: -d["size_px"])
 
 
+def jump_descriptions(model, located) -> list[Candidate]:
+    """A located jump in time of the rotation about a moving rotary axis, as a
+    one-parameter description (the reading off by a constant from then on):
+    a named effect must explain the recording better than this plain
+    description of it before it is claimed."""
+    chain = getattr(model, "chain", None)
+    if chain is None or getattr(model, "stage", None) == "fit-pose":
+        return []
+    out = []
+    for loc in located:
+        if "at_time" not in loc:
+            continue
+        for k, name in enumerate(chain.names):
+            if model.rotary[k] and np.ptp(model.readings[:, k]) > 0 and loc["component"] == f"rotation about axis {name}":
+                t0 = float(loc["at_time"])
+                out.append(Candidate(f"reading_jump:{name}@{t0:g}s", ("amount",), ("deg",), (0.005,),
+                                     lambda x, k=k, t0=t0: ReadingJump(k, t0, float(x[0])),
+                                     lambda x, s, n=name, t0=t0: f"the {n} reading off by {x[0]:+.4f} ± {s[0]:.4f} deg "
+                                                                 f"from t = {t0:g} s on (a jump: a slip or a knock)"))
+    return out
+
+
 def _verdict(found, partial, ambiguous, located, adequacy, rms_before, floor) -> str:
     """The sentence, made from the decision's data."""
     where = "; ".join(describe(loc) for loc in located[:3])
     if found:
         return (" and ".join(f["statement"] for f in found)
                 + (f"; not distinguishable here from {', '.join(ambiguous)}" if ambiguous else ""))
+    if partial and adequacy.get("beaten_by"):
+        return (f"located, not named: {where}. {' and '.join(f['effect'] for f in partial)} would explain it less "
+                f"well than {adequacy['beaten_by']}, a form no effect of the library has; not claimed")
     if partial:
         left = adequacy["remaining"]
         what = "; ".join(describe(loc) for loc in left[:2]) or ", ".join(adequacy["structure_left"]) or "no structure"
@@ -449,6 +489,8 @@ def _verdict(found, partial, ambiguous, located, adequacy, rms_before, floor) ->
                 f"{adequacy['rms_px_after']:.4f} px against a noise floor of {floor:.4f} px) but leaves {what}; "
                 "not claimed")
     if located:
+        described = (adequacy or {}).get("described_by")
         return (f"located, not named: {where}; no effect of the library explains it "
-                f"(RMS {rms_before:.4f} px against a noise floor of {floor:.4f} px)")
+                f"(RMS {rms_before:.4f} px against a noise floor of {floor:.4f} px)"
+                + (f"; {described}" if described else ""))
     return "no left-out effect beats the noise"

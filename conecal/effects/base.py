@@ -16,6 +16,7 @@ import numpy as np
 from ..errors import InputError
 from ..geometry.transforms import RigidTransform
 from ..kinematics import Chain
+from .recording import Imaging
 
 REGISTRY: dict[str, type["Effect"]] = {}
 
@@ -55,8 +56,6 @@ class World:
     def start(cls, times, readings, chain=None, robot=None, placement=None) -> "World":
         times = np.asarray(times, dtype=float)
         readings = np.asarray(readings, dtype=float)
-        from .imaging import Imaging
-
         return cls(times, readings, readings.copy(), chain, robot, np.zeros((len(times), 3)),
                    np.zeros((len(times), 3)), Imaging(), placement)
 

@@ -344,12 +344,15 @@ def placement_summary(per: list[dict | None]) -> dict | None:
 
 
 def fit_poses(scan, markers_doc: dict, geometry: ConeGeometry, opt: PoseOptions, *, initial: str = "log",
-              use_flagged: bool = False, progress=None,
-              frames: set[int] | None = None) -> tuple[list[FramePose], np.ndarray, np.ndarray]:
+              use_flagged: bool = False, progress=None, frames: set[int] | None = None,
+              rescue=None) -> tuple[list[FramePose], np.ndarray, np.ndarray]:
     """Poses of every frame of a robot scan. ``initial``: 'log' (the joint
     log through the DH model) or 'previous' (the last good frame's placement
     error carried to this frame's log pose; the log where there is none).
-    ``frames``: only these frame numbers (a part of the scan).
+    ``frames``: only these frame numbers (a part of the scan). ``rescue``:
+    what to try on a frame the log's pose could not start (with
+    ``opt.rescue``; :func:`conecal.calib.rescue.rescue_frame`, the pattern
+    search, given by the caller: ``fit`` does not depend on ``calib``).
     Returns the poses and the joint-log rotations and translations (of
     those frames)."""
     from ..errors import InputError
@@ -377,8 +380,8 @@ def fit_poses(scan, markers_doc: dict, geometry: ConeGeometry, opt: PoseOptions,
         p = fit_frame(int(frame), geometry, pts, ids, radius, xy, sg, R0, t0, opt, screw)
         if p.status != "ok" and initial == "previous" and carry is not None:
             p = fit_frame(int(frame), geometry, pts, ids, radius, xy, sg, T.R[k], T.t[k], opt, screw)
-        if p.status != "ok" and opt.rescue and len(xy) >= opt.min_spheres:
-            p = rescue_frame(int(frame), geometry, pts, ids, radius, xy, sg, T.R[k], T.t[k], opt, screw, p)
+        if p.status != "ok" and opt.rescue and rescue is not None and len(xy) >= opt.min_spheres:
+            p = rescue(int(frame), geometry, pts, ids, radius, xy, sg, T.R[k], T.t[k], opt, screw, p)
         if p.status == "ok":
             dR = p.R @ T.R[k].T
             carry = (dR, p.t - T.t[k], T.t[k])
@@ -387,46 +390,6 @@ def fit_poses(scan, markers_doc: dict, geometry: ConeGeometry, opt: PoseOptions,
             progress(n_done, len(rows))
     return poses, T.R[rows], T.t[rows]
 
-
-def rescue_frame(frame, geometry, pts, ids, radius, xy, sg, R_log, t_log, opt, screw, failed: FramePose) -> FramePose:
-    """The pattern search (conecal.calib) for a frame the log's pose could not
-    start; the frame is fitted again from what it finds, under the same tests.
-    Identifications the pattern alone cannot tell apart (a helix shifted by a
-    sphere) are decided by the log only when it is at least twice as close to
-    one of them as to any other, in phantom-point RMS. Otherwise the first
-    rejection stands."""
-    from ..calib.camera import GeometryCamera
-    from ..calib.phantom import describe_phantom
-    from ..calib.search import SearchOptions, search_frame
-
-    found = search_frame(GeometryCamera(geometry), describe_phantom(pts, ids, radius=radius), xy, (R_log, t_log),
-                         SearchOptions(min_spheres=opt.min_spheres))
-    start = found.best if found.status == "ok" else _nearest_by_margin(found, pts, R_log, t_log)
-    if start is None:
-        return failed
-    p = fit_frame(frame, geometry, pts, ids, radius, xy, sg, start.R, start.t, opt, screw)
-    if p.status != "ok":
-        return failed
-    p.found_by = "pattern search (the log's pose was off)"
-    return p
-
-
-def _nearest_by_margin(found, pts, R_log, t_log, margin: float = 3.0):
-    """The ambiguous search's candidate the log points to, or None. Distances
-    are RMS displacements of the phantom's points (mm); the log must be within
-    1/margin of the distance from that candidate to each rival, so it is at
-    least (margin - 1) times closer to it than to any other."""
-    if not found.status.startswith("ambiguous") or found.best is None:
-        return None
-    cands = [found.best] + list(found.alternatives)
-
-    def d(Ra, ta, Rb, tb):
-        return float(np.sqrt(np.mean(np.sum((pts @ (Ra - Rb).T + (ta - tb)) ** 2, axis=1))))
-
-    near = min(cands, key=lambda c: d(c.R, c.t, R_log, t_log))
-    dl = d(near.R, near.t, R_log, t_log)
-    sep = min(d(near.R, near.t, c.R, c.t) for c in cands if c is not near)
-    return near if dl * margin < sep else None
 
 
 def refine_geometry(geometry: ConeGeometry, poses: list[FramePose], points: np.ndarray, ids: np.ndarray,
