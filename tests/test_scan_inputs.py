@@ -57,10 +57,19 @@ def test_missing_scan_dir(tmp_path):
     assert_input_error(run_detect(tmp_path / "nope", tmp_path), "scan.yaml", "not found")
 
 
-def test_frame_count_differs_from_log_rows(scan_copy, tmp_path):
+def test_a_log_may_list_a_subset_of_the_pages_but_not_one_past_the_end(scan_copy, tmp_path):
+    import json
+
     log = (scan_copy / "log.csv").read_text().splitlines()
-    (scan_copy / "log.csv").write_text("\n".join(log[:-2]) + "\n")
-    assert_input_error(run_detect(scan_copy, tmp_path), "projections.tif", "8 frames", "6 rows")
+    (scan_copy / "log.csv").write_text("\n".join([log[0]] + log[1:3] + log[5:]) + "\n")   # pages 2 and 3 left out
+    res = run_detect(scan_copy, tmp_path)
+    assert res.exit_code == 0, res.output
+    frames = [f["frame"] for f in json.loads((tmp_path / "m.json").read_text())["frames"]]
+    assert frames == [0, 1, 4, 5, 6, 7]
+    (tmp_path / "m.json").unlink()
+    last = log[-1].split(",")
+    (scan_copy / "log.csv").write_text("\n".join(log + [",".join(["8", str(float(last[1]) + 1)] + last[2:])]) + "\n")
+    assert_input_error(run_detect(scan_copy, tmp_path), "log.csv", "frame 8 is past the last page", tmp_path=tmp_path)
 
 
 def test_nan_pixel_names_the_frame(scan_copy, tmp_path):

@@ -80,11 +80,12 @@ def load_scan(path: str | Path) -> Scan:
     flat = _file("flat", cfg.flat)
     dark = _file("dark", cfg.dark)
     stack = ProjectionStack(proj, (cfg.detector.rows, cfg.detector.cols), cfg.values, flat, dark)
-    if len(stack) != len(log):
-        raise InputError(f"{proj}: {len(stack)} frames, but {root / cfg.log} has {len(log)} rows")
+    # a log may list a subset of the pages (frames are page numbers): a scan
+    # trimmed, or split by hand; every listed page must exist
     if np.any(log.frame >= len(stack)):
         bad = int(np.flatnonzero(log.frame >= len(stack))[0])
-        raise InputError(f"{root / cfg.log}: line {bad + 2}, column 'frame': frame {log.frame[bad]} is past the last page")
+        raise InputError(f"{root / cfg.log}: line {bad + 2}, column 'frame': frame {log.frame[bad]} is past the last page "
+                         f"of {proj} ({len(stack)} pages)")
     phantom = None
     if cfg.markers is not None and cfg.markers.phantom is not None:
         phantom = read_phantom(_file("markers.phantom", cfg.markers.phantom))
