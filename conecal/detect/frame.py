@@ -34,6 +34,7 @@ import cv2
 import numpy as np
 
 from . import kernels
+from ..stats import difference_sigma, mad_sigma
 
 
 @dataclass(frozen=True)
@@ -112,7 +113,7 @@ def candidates(a: np.ndarray, opt: DetectOptions, invalid: np.ndarray | None = N
     # threshold is taken against the smoothed top-hat's own robust spread
     sub = sm[::6, ::6]
     base = float(np.median(sub))
-    noise = 1.4826 * float(np.median(np.abs(sub - base))) + 1e-7
+    noise = float(mad_sigma(sub)) + 1e-7
     sm = sm - base
     k = max(int(opt.diameter_px[0] / f * 0.6), 1) * 2 + 1
     mx = cv2.dilate(sm, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (k, k)))
@@ -141,9 +142,7 @@ def candidates(a: np.ndarray, opt: DetectOptions, invalid: np.ndarray | None = N
 
 def noise_small(img: np.ndarray) -> float:
     """Robust per-pixel noise sigma of an image (from neighbour differences)."""
-    d = (img[::4, 1::4] - img[::4, :-1:4]).ravel()
-    med = np.median(d)
-    return 1.4826 * float(np.median(np.abs(d - med))) / np.sqrt(2.0) + 1e-7
+    return float(difference_sigma((img[::4, 1::4] - img[::4, :-1:4]).ravel())) + 1e-7
 
 
 def noise_pixel(img: np.ndarray, size: int = 7) -> float:
@@ -154,8 +153,7 @@ def noise_pixel(img: np.ndarray, size: int = 7) -> float:
     background fit meets."""
     a = np.ascontiguousarray(img[::2, ::2] if min(img.shape) > 256 else img, dtype=np.float32)
     d = (a - cv2.blur(a, (size, size), borderType=cv2.BORDER_REPLICATE)).ravel()
-    med = np.median(d)
-    return 1.4826 * float(np.median(np.abs(d - med))) / np.sqrt(1 - 1 / size**2) + 1e-7
+    return float(mad_sigma(d)) / np.sqrt(1 - 1 / size**2) + 1e-7
 
 
 _EMPTY = np.zeros(0)

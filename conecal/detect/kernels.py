@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import numpy as np
 from numba import njit
+from ..stats import MAD_TO_SIGMA
 
 
 @njit(cache=True)
@@ -126,7 +127,7 @@ def fit_background(roi, inv, cx, cy, r_in, r_out, rw, ox, oy, orad, quad_min):
             if keep[t]:
                 absr[nk] = abs(v)
                 nk += 1
-        sig = 1.4826 * np.median(absr) + 1e-7  # floor: noiseless (simulated) data
+        sig = MAD_TO_SIGMA * np.median(absr) + 1e-7  # floor: noiseless (simulated) data
         changed = False
         for t in range(n):
             k = abs(res[t]) < 3.5 * sig

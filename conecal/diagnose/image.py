@@ -37,6 +37,7 @@ import numpy as np
 
 from ..effects.imaging import beam_hardened, unhardened
 from ..simulate.render import Sphere, render_line_integrals
+from ..stats import mad_sigma
 
 KERNEL_RADIUS = 6          # px; the blur kernel's half width (sigma up to 2 px)
 SIGMA_FLOOR = 1e-4         # attenuation; the noise of a noiseless (float32) image
@@ -229,7 +230,7 @@ class ImageModel:
                 self._levels.append(_quantum(A, bg_mask))
                 b = _background(A, bg_mask)
                 resid = (A - b)[bg_mask]
-                sig = max(1.4826 * np.median(np.abs(resid - np.median(resid))), SIGMA_FLOOR)
+                sig = max(float(mad_sigma(resid)), SIGMA_FLOOR)
                 # structure the model cannot explain (clutter, another object) in the background
                 if np.mean(np.abs(resid) > 5 * sig) > 0.02:
                     self.skipped["clutter in the background"] = self.skipped.get("clutter in the background", 0) + 1

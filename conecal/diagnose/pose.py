@@ -35,6 +35,7 @@ from ..errors import InputError
 from ..geometry import ConeGeometry, RigidTransform, rotvec_to_matrix
 from ..geometry.rotations import skew
 from .model import Observations
+from ..stats import difference_sigma
 
 def small_rotvec(R: np.ndarray) -> np.ndarray:
     """Rotation vectors (..., 3) rad of rotations (..., 3, 3) below 90 deg."""
@@ -106,7 +107,7 @@ class PoseModel:
         r = self._residual(None, sol.x)
         order = np.argsort(self.obs.row)
         d = np.diff(r[order], axis=0)
-        spread = 1.4826 * np.median(np.abs(d - np.median(d, axis=0)), axis=0) / np.sqrt(2)
+        spread = difference_sigma(d, axis=0)
         return np.sqrt(np.clip(spread ** 2 - np.median(self.obs.sigma_fit ** 2, axis=0), 0, None))
 
     def world(self, effects=()) -> World:

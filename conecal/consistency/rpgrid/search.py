@@ -16,6 +16,7 @@ import numpy as np
 from ..misalignment import NAMES, UNITS
 from .cost import RPProblem
 from .options import RPOptions
+from ...stats import mad_sigma
 
 # -- the search ------------------------------------------------------------------------------------
 
@@ -147,7 +148,7 @@ def refine(prob: RPProblem, opt: RPOptions, p):
     (the same scan: 3.6 s; core.solve's ``hessian``)."""
     prob.select(p)
     r = prob.residuals(p)
-    scale = 1.4826 * float(np.median(np.abs(r - np.median(r)))) or 1.0
+    scale = float(mad_sigma(r)) or 1.0
     fit = None
     for _ in range(2):
         fit = _solve(prob, opt, _parameters(opt, p), scale, max_nfev=opt.refine_max_nfev, tol=1e-10)

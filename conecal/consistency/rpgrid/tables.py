@@ -23,6 +23,7 @@ from ...geometry import ConeGeometry
 from .. import kernels
 from ..radon import KERNEL_REACH, derivative_kernel, s_derivative
 from .options import RPOptions, _lookup
+from ...stats import difference_sigma
 
 
 @dataclass
@@ -110,7 +111,7 @@ def _edge_flags(img, rect, level):
     # faint cut (the thin tip of an object reaching out) makes lines inconsistent
     edges = [sub[:band].mean(axis=0), sub[-band:].mean(axis=0), sub[:, :band].mean(axis=1), sub[:, -band:].mean(axis=1)]
     border = np.concatenate(edges)
-    noise = 1.4826 * float(np.median(np.abs(np.diff(border)))) / np.sqrt(2) + 1e-12
+    noise = float(difference_sigma(np.diff(border), centre=False)) + 1e-12
     flags = border > max(level * ref, 4 * noise)
     # a few pixels of margin: a line grazing a flagged stretch is suspect
     k = 4
@@ -146,7 +147,7 @@ def _holder_hull(img, rect, ratio: float):
     holder = np.isin(labels, np.flatnonzero(border))
     if holder.sum() < 0.002 * holder.size:
         return None
-    noise = 1.4826 * float(np.median(np.abs(np.diff(sub[:4], axis=1)))) + 1e-12
+    noise = float(difference_sigma(np.diff(sub[:4], axis=1), centre=False)) + 1e-12
     rest = sub[~cv2.dilate(holder.astype(np.uint8), np.ones((7, 7), np.uint8)).astype(bool)]
     rest = rest[rest > 5 * noise]
     # nothing else left: the object itself reaches the border (truncation, not a holder)

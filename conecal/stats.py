@@ -1,0 +1,23 @@
+"""Robust statistics shared by the stages (one home for each formula)."""
+
+from __future__ import annotations
+
+import numpy as np
+
+# sigma of a normal distribution per median absolute deviation: 1 / Phi^-1(3/4)
+MAD_TO_SIGMA = 1.4826
+
+
+def mad_sigma(x, axis=None, centre: bool = True):
+    """Normal sigma of ``x`` from its median absolute deviation, about the
+    median (``centre``) or about zero (values known to scatter about 0)."""
+    x = np.asarray(x, dtype=float)
+    c = np.median(x, axis=axis, keepdims=True) if centre else 0.0
+    return MAD_TO_SIGMA * np.median(np.abs(x - c), axis=axis)
+
+
+def difference_sigma(d, axis=None, centre: bool = True):
+    """Sigma of one value from differences ``d = a - b`` of two equally noisy
+    values (neighbouring pixels, consecutive frames): the differences scatter
+    sqrt(2) times as much as each value."""
+    return mad_sigma(d, axis=axis, centre=centre) / np.sqrt(2.0)
