@@ -9,7 +9,6 @@ images carry the pixel pitch as spacing and an origin that puts physical
 
 from __future__ import annotations
 
-import os
 import tempfile
 from pathlib import Path
 
@@ -17,7 +16,7 @@ import numpy as np
 
 from ..errors import InputError
 from ..geometry import ConeGeometry
-from ..jsonio import new_file_mode
+from ..jsonio import atomic_write
 
 
 def _rtk():
@@ -68,18 +67,16 @@ def write_rtk_xml(path, views: list[ConeGeometry]) -> Path:
     _, rtk = _rtk()
     path = Path(path)
     geo = rtk_geometry(views)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".xml", dir=path.parent or ".")
-    os.close(fd)
-    try:
-        w = rtk.ThreeDCircularProjectionGeometryXMLFileWriter.New()
-        w.SetFilename(tmp)
-        w.SetObject(geo)
-        w.WriteFile()
-        os.chmod(tmp, new_file_mode())
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
+
+    def write(fh):   # RTK writes to a file name: render in a scratch folder, then one atomic write
+        with tempfile.TemporaryDirectory() as d:
+            w = rtk.ThreeDCircularProjectionGeometryXMLFileWriter.New()
+            w.SetFilename(str(Path(d) / "geometry.xml"))
+            w.SetObject(geo)
+            w.WriteFile()
+            fh.write((Path(d) / "geometry.xml").read_bytes())
+
+    atomic_write(path, write)
     return path
 
 
