@@ -88,12 +88,32 @@ class Parameter(Doc):
 
 
 class Distortion(Doc):
-    """Detector distortion: ideal pinhole (c, r) -> measured (c + dc, r + dr), px."""
+    """Detector distortion: ideal pinhole (c, r) -> measured (c + dc, r + dr), px;
+    coefficients in px of displacement at ``radius_px`` from ``centre``."""
 
-    model: Annotated[str, Field(min_length=1)]
+    model: Literal["radial_tangential", "polynomial"]
     parameters: dict[str, Finite]
-    centre: Vec2 | None = None
-    radius_px: PositiveFloat | None = None
+    centre: Vec2
+    radius_px: PositiveFloat
+    degree: Annotated[int, Field(ge=0)] | None = None
+    sigma: dict[str, Annotated[float, Field(ge=0, allow_inf_nan=False)] | None] | None = None
+
+
+class ChosenDistortion(Distortion):
+    """A free-pose result's distortion: the family chosen on held-out markers."""
+
+    family: Annotated[str, Field(min_length=1)]
+    max_displacement_px: NonNegative
+
+
+class Intrinsic(Parameter):
+    """A free-pose intrinsic (sdd mm, c0/r0 px): value, total 1-sigma and its parts."""
+
+    value: Finite
+    sigma: Annotated[float, Field(ge=0, allow_inf_nan=False)]
+    unit: str
+    sigma_statistical: Annotated[float, Field(ge=0, allow_inf_nan=False)] | None = None
+    sigma_model: Annotated[float, Field(ge=0, allow_inf_nan=False)] | None = None
 
 
 class ScanFingerprint(Doc):

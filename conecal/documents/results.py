@@ -12,8 +12,8 @@ from typing import Annotated, Literal
 import numpy as np
 from pydantic import Field, field_validator, model_validator
 
-from .common import (Axis, Detector, Distortion, Doc, Finite, Matrix3, MaybeFinite, NonNegative, Parameter,
-                     PositiveFloat, ScanFingerprint, Vec3, source_off_detector)
+from .common import (Axis, ChosenDistortion, Detector, Distortion, Doc, Finite, Intrinsic, Matrix3, MaybeFinite,
+                     NonNegative, Parameter, PositiveFloat, ScanFingerprint, Vec3, source_off_detector)
 
 FrameNumber = Annotated[int, Field(ge=0, description="page index in the projection stack")]
 Sigma3 = Annotated[list[NonNegative | None], Field(min_length=3, max_length=3)]
@@ -148,16 +148,19 @@ class PosesDocument(_HasGeometry):
     motion: Literal["robot", "free"] | None = None
     frames: list[PoseFrame]
     summary: PosesSummary | None = None
-    intrinsics: dict[str, Parameter] | None = None
+    intrinsics: dict[str, Intrinsic] | None = None
+    distortion: ChosenDistortion | Distortion | None = None
     frame_range: tuple[FrameNumber, FrameNumber] | None = None
 
     @model_validator(mode="after")
     def _free(self):
         if self.motion == "free":
-            missing = [k for k in ("sdd", "c0", "r0") if k not in (self.intrinsics or {})
-                       or self.intrinsics[k].value is None]
+            missing = [k for k in ("sdd", "c0", "r0") if k not in (self.intrinsics or {})]
             if missing:
-                raise ValueError(f"a free-pose result needs intrinsics.{missing[0]}.value")
+                raise ValueError(f"a free-pose result needs intrinsics.{missing[0]}")
+            if self.distortion is not None and not isinstance(self.distortion, ChosenDistortion):
+                raise ValueError("distortion: a free-pose result's distortion names its family and "
+                                 "max_displacement_px")
         return self
 
 

@@ -65,8 +65,8 @@ def free_html(doc) -> tuple[list[str], list]:
     """HTML paragraphs/tables and (png, caption) figures."""
     it = doc["intrinsics"]
     rows = "".join(f"<tr><td>{n}</td><td>{p['unit']}</td><td class=num>{p['value']:.6g}</td>"
-                   f"<td class=num>{p['sigma']:.3g}</td><td class=num>{p['sigma_statistical']:.3g}</td>"
-                   f"<td class=num>{p['sigma_model']:.3g}</td></tr>" for n, p in it.items())
+                   f"<td class=num>{p['sigma']:.3g}</td><td class=num>{_num(p.get('sigma_statistical'), '{:.3g}')}</td>"
+                   f"<td class=num>{_num(p.get('sigma_model'), '{:.3g}')}</td></tr>" for n, p in it.items())
     parts = ["<table><tr><th>intrinsic</th><th>unit</th><th>value</th><th>± 1σ</th><th>statistical</th>"
              f"<th>model</th></tr>{rows}</table>"]
     d = doc.get("distortion")
@@ -108,7 +108,7 @@ def free_html(doc) -> tuple[list[str], list]:
 def free_terminal(console, doc) -> None:
     it = doc["intrinsics"]
     console.print("  " + ", ".join(f"{n} {p['value']:.4f} ± {p['sigma']:.4f} {p['unit']} (model part "
-                                   f"{p['sigma_model']:.3g})" for n, p in it.items()))
+                                   f"{_num(p.get('sigma_model'), '{:.3g}')})" for n, p in it.items()))
     d = doc.get("distortion")
     console.print(f"  distortion: {d['family']} up to {d['max_displacement_px']:.3f} px" if d else
                   "  distortion: none claimed")
