@@ -57,3 +57,17 @@ def test_robot_forward_kinematics_composes_base_links_flange(rng):
             ref = ref @ dh_modified(a, al, d, np.array(th + qj))
         ref = ref @ flange
         assert np.allclose(T[k].matrix(), ref.matrix())
+
+
+def test_chain_to_list_and_from_list_round_trip():
+    from conecal.kinematics import Chain, LinearAxis, RotaryAxis
+
+    chain = Chain((LinearAxis("x", [1.0, 0.0, 0.0], 1.002), LinearAxis("y", [0.0, 1.0, 0.0]),
+                   RotaryAxis("theta", [0.0, 0.6, 0.8], [1.0, 2.0, 3.0])))
+    again = Chain.from_list(chain.to_list())
+    q = np.array([[1.0, -2.0, 30.0], [0.5, 0.0, -170.0]])
+    T1, T2 = chain.transforms(q), again.transforms(q)
+    assert np.allclose(T1.R, T2.R) and np.allclose(T1.t, T2.t)
+    assert again.to_list() == chain.to_list()
+    with pytest.raises(ValueError, match="spiral"):
+        Chain.from_list([{"name": "a", "type": "spiral", "direction": [1, 0, 0]}])

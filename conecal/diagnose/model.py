@@ -21,7 +21,7 @@ from ..errors import InputError
 from ..fit.detector_params import NAMES as NAMES9
 from ..fit.detector_params import DetectorParams
 from ..geometry import ConeGeometry
-from ..kinematics import RotaryAxis
+from ..kinematics import Chain, RotaryAxis
 
 
 @dataclass(frozen=True, eq=False)
@@ -108,8 +108,6 @@ class ResultModel:
     n_comp = 2   # each observation: a marker centre (x, y) px
 
     def __init__(self, doc: dict, scan, path="result"):
-        from ..export.views import _chain_from_doc
-
         stage = doc.get("stage")
         if stage not in ("fit-rotation", "fit-linear"):
             raise InputError(f"{path}: diagnose works on fit-rotation and fit-linear results (and fit-pose's poses), "
@@ -120,7 +118,9 @@ class ResultModel:
         self.stage = stage
         self.geometry = ConeGeometry.from_dict(doc)
         self.params = DetectorParams(self.geometry)
-        self.chain = _chain_from_doc(doc, path)
+        if not doc.get("axes"):
+            raise InputError(f"{path}: axes: a result without axes has no motion to diagnose")
+        self.chain = Chain.from_list(doc["axes"])   # typed and checked when the document was read
         missing = [a for a in self.chain.names if a not in scan.log.names]
         if missing:
             raise InputError(f"{scan.root / 'log.csv'}: no column for axis {missing[0]!r} of {path}")

@@ -17,7 +17,7 @@ import numpy as np
 
 from ..geometry import ConeGeometry, RigidTransform
 from ..jsonio import read_json
-from .views import _chain_from_doc
+from .views import chain_from_doc
 
 
 @dataclass
@@ -80,7 +80,7 @@ def compare_files(path_a, path_b, tol_px: float = 0.05, tol_sigma: float = 3.0) 
     X = _fov_points(ga)
     worst, where = float(np.hypot(*(ga.project(X) - gb.project(X)).T).max()), "lab, at rest"
     if a.get("axes") and b.get("axes"):
-        ca, cb = _chain_from_doc(a, path_a), _chain_from_doc(b, path_b)
+        ca, cb = chain_from_doc(a, path_a), chain_from_doc(b, path_b)
         if ca.names == cb.names:
             q = _readings(ca, np.random.default_rng(0))
             Ta, Tb = ca.transforms(q), cb.transforms(q)

@@ -16,21 +16,17 @@ from ..binding import check_scan
 from ..errors import InputError
 from ..geometry import ConeGeometry, RigidTransform
 from ..jsonio import atomic_write, read_json
-from ..kinematics import Chain, LinearAxis, RotaryAxis
+from ..kinematics import Chain
 
 
-def _chain_from_doc(doc: dict, path) -> Chain:
-    axes = []
-    for a in doc.get("axes", []):
-        if a.get("type") == "linear":
-            axes.append(LinearAxis(a["name"], a["direction"], float(a.get("scale", 1.0))))
-        elif a.get("type") == "rotary":
-            axes.append(RotaryAxis(a["name"], a["direction"], a.get("point", (0, 0, 0))))
-        else:
-            raise InputError(f"{path}: axes: unknown type {a.get('type')!r}")
-    if not axes:
+def chain_from_doc(doc: dict, path) -> Chain:
+    """The axes of a geometry document as a chain; InputError when it has none."""
+    if not doc.get("axes"):
         raise InputError(f"{path}: axes: a geometry without axes has no per-view motion; export needs them")
-    return Chain(tuple(axes))
+    try:
+        return Chain.from_list(doc["axes"])
+    except ValueError as exc:
+        raise InputError(f"{path}: axes: {exc}") from None
 
 
 def views(result_path, scan=None, *, other_scan: bool = False) -> tuple[ConeGeometry, list[int], RigidTransform, list[str]]:
@@ -58,7 +54,7 @@ def views(result_path, scan=None, *, other_scan: bool = False) -> tuple[ConeGeom
         return g, [int(f["frame"]) for f in ok], T, warnings
     if scan is None:
         raise InputError(f"{result_path}: a geometry file needs --scan (its log gives each view's axis readings)")
-    chain = _chain_from_doc(doc, result_path)
+    chain = chain_from_doc(doc, result_path)
     names = list(scan.log.names)
     missing = [a for a in chain.names if a not in names]
     if missing:

@@ -112,6 +112,20 @@ class Chain:
     def to_list(self) -> list[dict]:
         return [a.to_dict() for a in self.axes]
 
+    @classmethod
+    def from_list(cls, axes: list[dict]) -> "Chain":
+        """Inverse of :meth:`to_list`: the ``axes`` of a geometry document (mm, unit
+        directions; a linear axis' ``scale`` defaults to 1, a rotary ``point`` to 0)."""
+        out = []
+        for a in axes:
+            if a.get("type") == "linear":
+                out.append(LinearAxis(a["name"], a["direction"], float(a.get("scale") or 1.0)))
+            elif a.get("type") == "rotary":
+                out.append(RotaryAxis(a["name"], a["direction"], a.get("point") or (0.0, 0.0, 0.0)))
+            else:
+                raise ValueError(f"axis {a.get('name')!r}: unknown type {a.get('type')!r}")
+        return cls(tuple(out))
+
 
 def dh_modified(a: float, alpha_deg: float, d: float, theta_deg: np.ndarray) -> RigidTransform:
     """Craig's modified DH link ``RotX(alpha) TransX(a) RotZ(theta) TransZ(d)``."""
