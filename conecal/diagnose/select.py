@@ -168,6 +168,8 @@ DEGENERATE_LOSS = 100.0
 # A claim must bring the residual RMS within this factor of the noise floor
 # and leave no significant structure (issue 28: adequacy before a claim).
 ADEQUATE_RMS = 1.15
+# a located jump's plain description must beat the named effects by this much BIC to stop a claim
+JUMP_MARGIN_BIC = 10.0
 
 
 def _behind(evals, a: str, b: str) -> tuple[float, float]:
@@ -395,10 +397,13 @@ def diagnose(model, *, alpha: float = 0.01, progress=None, tie_breaker=None) -> 
         adequacy["adequate"] = bool(adequacy["rms_ok"] and not adequacy["structure_left"]
                                     and (blocks is None or blocks["passed"]))
         chosen_bic = float(base["bic"] - final["bic"])
-        better = [d for d in descriptions if d["bic_gain"] >= chosen_bic]
+        better = [d for d in descriptions if d["bic_gain"] > chosen_bic + JUMP_MARGIN_BIC]
         if better:   # a plain jump describes it better than the named smooth effects
             adequacy.update(adequate=False, beaten_by=f"{better[0]['statement']} (BIC gain {better[0]['bic_gain']:.0f} "
                                                       f"against {chosen_bic:.0f})")
+        else:        # as well: the data cannot tell the named effect from a jump (one reversal: backlash)
+            ambiguous = ambiguous + [d["description"] for d in descriptions
+                                     if abs(d["bic_gain"] - chosen_bic) <= JUMP_MARGIN_BIC]
         if not adequacy["adequate"]:
             partial, found = found, []
     if not chosen and descriptions and descriptions[0]["claimable"]:
