@@ -8,6 +8,7 @@ from ..fit.markers import load_observations
 from ..fit.output import fit_summary, geometry_document
 from ..fit.rotation import fit_rotation
 from ..geometry import ConeGeometry
+from ..errors import InputError
 from ..jsonio import read_json
 from ..scan import load_scan
 from .options import centre_model_option, output_option, write_fit
@@ -47,7 +48,8 @@ def command(scans, markers, geometry, output, refine_geometry, loss, use_flagged
     gdoc = read_json(geometry, "conecal-geometry") if geometry else None
     g = ConeGeometry.from_dict(gdoc) if gdoc else s.nominal_geometry()
     if g.shape != (s.config.detector.rows, s.config.detector.cols):
-        raise click.BadParameter(f"detector shape {list(g.shape)} differs from the scan's", param_hint="--geometry")
+        raise InputError(f"{geometry}: detector.shape {list(g.shape)} differs from {s.root / 'scan.yaml'}'s "
+                         f"[{s.config.detector.rows}, {s.config.detector.cols}] (rows, cols)")
     obs = [load_observations(m, sc, use_flagged=use_flagged) for m, sc in zip(markers, loaded)]
     fit = fit_rotation(loaded, obs, g, geometry_doc=gdoc, refine_geometry=refine_geometry, loss=loss, centre_model=centre_model)
     res = fit.result

@@ -98,6 +98,17 @@ class Distortion(Doc):
     degree: Annotated[int, Field(ge=0)] | None = None
     sigma: dict[str, Annotated[float, Field(ge=0, allow_inf_nan=False)] | None] | None = None
 
+    @model_validator(mode="after")
+    def _terms(self):
+        from ..geometry.distortion import RADIAL_TERMS, poly_terms
+
+        names = (RADIAL_TERMS if self.model == "radial_tangential" else
+                 [f"{a}_x{i}y{j}" for a in ("dc", "dr") for i, j in poly_terms(self.degree or 0)])
+        missing = [n for n in names if n not in self.parameters]
+        if missing:
+            raise ValueError(f"parameters: the {self.model} model needs {missing[0]!r}")
+        return self
+
 
 class ChosenDistortion(Distortion):
     """A free-pose result's distortion: the family chosen on held-out markers."""
