@@ -252,7 +252,7 @@ def files(out: Path, tmp: Path) -> list[str]:
         t0 = time.perf_counter()
         r = conecal("detect", out / "rotation", "-o", tmp / "afile" / "m.json")
         rows.append(f"  -o under a file: exit {r.returncode} after {time.perf_counter() - t0:.2f} s")
-    long_scan = out / ("circular" if (out / "circular").exists() else "robot")   # runs long enough to be stopped
+    long_scan = out / "robot"   # 24 frames of 640x640 with ~40 spheres: long enough to be stopped
     p = subprocess.Popen(CONECAL + ["detect", str(long_scan), "-o", str(tmp / "term.json"), "--workers", "2"],
                          stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True, start_new_session=True)
     time.sleep(4.0)

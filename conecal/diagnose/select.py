@@ -23,8 +23,10 @@ from .model import EllipseCentreBias, ReadingJump
 from .structure import structure_tests
 
 
-def _fit(model, cands, select=None, x0=None):
-    """Least squares over the nine geometry parameters plus each candidate's."""
+def _fit(model, cands, select=None, x0=None, exact: bool = False):
+    """Least squares over the nine geometry parameters plus each candidate's.
+    ``exact``: every Jacobian column differenced at x (slower; for effects so
+    large that the fit's own parameters move beyond their linear range)."""
     ks = [c.k for c in cands]
     nb = model.n_base
     scales = np.concatenate([model.base_scales] + [c.scales for c in cands])
@@ -43,7 +45,7 @@ def _fit(model, cands, select=None, x0=None):
     if x0 is None:
         x0 = np.concatenate([np.zeros(nb)] + [np.zeros(c.k) if c.x0 is None else np.asarray(c.x0, float)
                                               for c in cands])
-    Jb = base_jacobian(model) if model.stage != "fit-pose" else None   # a registration moves far: not linear
+    Jb = base_jacobian(model) if model.stage != "fit-pose" and not exact else None   # a registration moves far
     if Jb is not None and select is not None:
         Jb = Jb.reshape(-1, model.n_comp, nb)[np.asarray(select, bool)].reshape(-1, nb)
 
@@ -133,8 +135,8 @@ def block_check(model, base_cands, cands) -> dict:
             "passed": bool(b - e > 0)}
 
 
-def evaluate(model, cands) -> dict:
-    x, sig, chi2, split = _fit(model, cands)
+def evaluate(model, cands, x0=None, exact: bool = False) -> dict:
+    x, sig, chi2, split = _fit(model, cands, x0=x0, exact=exact)
     n = model.n_comp * len(model.obs.row)
     k = len(x)
     x9, effs = split(x)
@@ -360,6 +362,13 @@ def diagnose(model, *, alpha: float = 0.01, progress=None, tie_breaker=None) -> 
         by = {c.label: c for c in cands}
         blocks = block_check(model, [], [by[c] for c in chosen])
     final = evals["+".join(chosen)] if chosen else base
+    n_res = model.n_comp * len(model.obs.row)
+    if chosen and final["chi2"] > ADEQUATE_RMS ** 2 * n_res:
+        # a large effect moves the fit's own parameters beyond the linear range of
+        # their Jacobian (taken once, at the fit): refine the choice with exact columns
+        polished = evaluate(model, [by[c] for c in chosen], x0=final["x"], exact=True)
+        if polished["chi2"] < final["chi2"]:
+            final = evals["+".join(chosen)] = polished
     r_after = model.whitened(final["effects"], final["x9"])
     tests_after = structure_tests(model, r_after, alpha)
     b0 = base["x9"]

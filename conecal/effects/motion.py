@@ -184,6 +184,18 @@ class RotaryRunout(Effect):
         return world.replace(chain=world.chain.replace_axis(self.axis, r))
 
 
+def _interp_extended(x, xp, fp):
+    """Linear interpolation of the logged path, continued along its first and
+    last segments outside it (a stage already moving when the log starts)."""
+    x, xp, fp = (np.asarray(v, dtype=float) for v in (x, xp, fp))
+    out = np.interp(x, xp, fp)
+    if len(xp) > 1:
+        lo, hi = x < xp[0], x > xp[-1]
+        out[lo] = fp[0] + (x[lo] - xp[0]) * (fp[1] - fp[0]) / (xp[1] - xp[0])
+        out[hi] = fp[-1] + (x[hi] - xp[-1]) * (fp[-1] - fp[-2]) / (xp[-1] - xp[-2])
+    return out
+
+
 @register
 @dataclass(frozen=True, eq=False)
 class EncoderLatency(Effect):
@@ -196,7 +208,8 @@ class EncoderLatency(Effect):
 
     def apply(self, world):
         t = world.times
-        q = np.column_stack([np.interp(t + self.latency, t, world.readings[:, k]) for k in range(world.readings.shape[1])])
+        q = np.column_stack([_interp_extended(t + self.latency, t, world.readings[:, k])
+                             for k in range(world.readings.shape[1])])
         return world.replace(true_readings=q)
 
 
