@@ -72,7 +72,8 @@ def command(result, scan, output, alpha, image_level, image_frames, markers, all
     doc = read_json(result, ("conecal-geometry", "conecal-poses"))
     check_scan(doc, result, scan, allow_other=allow_other_scan)
     s = load_scan(scan)
-    if list(doc["detector"]["shape"]) != [s.config.detector.rows, s.config.detector.cols]:
+    if doc.get("stage") in ("fit-rotation", "fit-linear") and \
+            list(doc["detector"]["shape"]) != [s.config.detector.rows, s.config.detector.cols]:
         from ..errors import InputError
         raise InputError(f"{result}: detector.shape {list(doc['detector']['shape'])} differs from "
                          f"{s.root / 'scan.yaml'}'s [{s.config.detector.rows}, {s.config.detector.cols}] (rows, cols)")
