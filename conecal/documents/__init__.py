@@ -55,7 +55,20 @@ def schema(name: str) -> dict:
     if short == "scan":
         out["description"] = ("scan.yaml (YAML; this schema applies to its parsed content). " +
                               (out.get("description") or ""))
+        out["x-log-csv"] = LOG_CSV
     return out
+
+
+# log.csv has no JSON form; its columns, as docs/scan-format.md states them
+LOG_CSV = {
+    "description": "log.csv: a header row, then one row per frame (a subset of the pages is allowed)",
+    "columns": {
+        "frame": "integer >= 0, unique: the page of the projection stack",
+        "time": "seconds since the start of the scan, not decreasing",
+        "<axis name>": "one column per axis of scan.yaml (mm or degrees), or q1..qn for a robot (degrees)",
+        "rx, ry, rz, tx, ty, tz": "motion: free only, optional: a rough pose guess (rotation vector in degrees, mm)",
+    },
+}
 
 
 def schema_text(name: str) -> str:
