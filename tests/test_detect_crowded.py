@@ -98,3 +98,16 @@ def test_a_sphere_beside_a_plate_edge_is_measured_with_the_step_removed():
     errs, sig = np.array(errs), np.array(sig)
     assert np.sqrt(np.mean(errs**2)) < 0.03
     assert np.sqrt(np.mean((errs / sig) ** 2)) < 2.0
+
+
+def test_near_pairs_of_larger_spheres_keep_their_neighbour_out_of_the_window():
+    """Shadows half a diameter apart: the centroid window used to reach the
+    neighbour, the size swelled and the pair was lost (a quarter of them)."""
+    rng = np.random.default_rng(11)
+    sph = np.concatenate([_pairs(0.5, rng, R=R) for R in (6.3, 6.6)])
+    sph[len(sph) // 2:, 0] += 320
+    img = (render((320, 640), sph, 1.0) + 0.1 + rng.normal(0, 0.004, (320, 640))).astype(np.float32)
+    blobs = detect_frame(img, DetectOptions(diameter_px=(7.2, 19.2), blur_px=1.0))
+    assert len(blobs) == len(sph)
+    err = [min(np.hypot(b.x - s[0], b.y - s[1]) for b in blobs) for s in sph]
+    assert max(err) < 0.05

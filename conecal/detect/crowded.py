@@ -137,7 +137,8 @@ def measure_crowded(a: np.ndarray, kept: list[Blob], merged: list[Blob], opt: De
             work[q0:q1, c0:c1] = a[q0:q1, c0:c1] - (total - models[n_i])
             b = refine(work, sph[n_i, 0], sph[n_i, 1], sph[n_i, 2], opt, others, noise, invalid)
             x_fit, y_fit = sph[n_i, :2]
-            s_fit = float(np.hypot(*sig[n_i, :2]) / np.sqrt(2))
+            # the joint fit treats pixels as independent: correlated noise scales it
+            s_fit = float(np.hypot(*sig[n_i, :2]) / np.sqrt(2) * np.sqrt(opt.noise_kappa))
             if b is None or np.hypot(b.x - x_fit, b.y - y_fit) > 0.5 * sph[n_i, 2]:
                 # the centroid cannot be had: the joint model's centre stands
                 if not np.isfinite(s_fit) or s_fit > 0.5:

@@ -65,6 +65,9 @@ class DetectOptions:
     # the scan's pixel noise with its correlated part (``noise_pixel``), measured
     # once per scan: the floor of the clutter test's reference noise
     pixel_noise: float = 0.0
+    # the noise's correlation factor (``noise_correlation``): a centroid's
+    # noise variance is this times the white-noise formula; measured once per scan
+    noise_kappa: float = 1.0
     # touching shadows fitted together, merged blobs split, a straight
     # background step beside a shadow removed (conecal.detect.crowded)
     joint_overlaps: bool = True
@@ -145,6 +148,55 @@ def noise_small(img: np.ndarray) -> float:
     return float(difference_sigma((img[::4, 1::4] - img[::4, :-1:4]).ravel())) + 1e-7
 
 
+def _block_ratio(d: np.ndarray, block: int, size: int) -> tuple[float, int]:
+    """block**2 var(block means of d) / var(d) over the blocks free of
+    structure (robustly, by MADs), and how many blocks that was. A shadow and
+    the halo the high-pass leaves around it (``size`` px) are kept out."""
+    h, w = (d.shape[0] // block) * block, (d.shape[1] // block) * block
+    d = d[:h, :w]
+    sm = cv2.blur(d, (5, 5))
+    busy = np.abs(sm - np.median(sm)) > 4 * mad_sigma(sm)
+    busy = cv2.dilate(busy.astype(np.uint8), np.ones((size, size), np.uint8)) > 0
+    blocks = d.reshape(h // block, block, w // block, block)
+    ok = ~busy.reshape(h // block, block, w // block, block).any(axis=(1, 3))
+    if ok.sum() < 50:
+        return 1.0, int(ok.sum())
+    m = blocks.mean(axis=(1, 3))[ok]
+    pix = blocks.transpose(0, 2, 1, 3)[ok].ravel()
+    return float(mad_sigma(m) ** 2 * block**2 / (mad_sigma(pix) ** 2 + 1e-30)), int(ok.sum())
+
+
+def noise_correlation(img: np.ndarray, blocks: tuple[int, ...] = (6, 10, 12), size: int = 31) -> float:
+    """How much more a sum over a patch scatters than independent pixels would:
+    kappa = sum of the noise's autocorrelation coefficients over all lags
+    (1 for white noise; ~4 pi s^2 for noise blurred by a Gaussian of s px, as
+    a scintillator does). Measured from the variance of 8 x 8 block means of
+    the high-passed image against its per-pixel variance, on blocks away from
+    any structure, and divided by the same statistic of white noise through
+    the same filter. A centroid's variance is kappa times the white-noise
+    formula when its weights vary slowly over the correlation length. Never
+    below 1: anti-correlated noise (JPEG's block quantisation) does not make a
+    centroid better than white noise would, and 1 is returned when fewer than
+    50 blocks are free of structure."""
+    a = np.ascontiguousarray(img, dtype=np.float32)
+    if min(a.shape) > 768:          # the centre is enough, and keeps it fast
+        r0, c0 = (a.shape[0] - 768) // 2, (a.shape[1] - 768) // 2
+        a = a[r0:r0 + 768, c0:c0 + 768]
+    if not np.isfinite(a).all():
+        return 1.0
+
+    hp = a - cv2.blur(a, (size, size), borderType=cv2.BORDER_REPLICATE)
+    white = np.random.default_rng(0).normal(0, 1, a.shape).astype(np.float32)
+    hw = white - cv2.blur(white, (size, size), borderType=cv2.BORDER_REPLICATE)
+    ratios = []
+    for b in blocks:
+        k, n = _block_ratio(hp, b, size)
+        if n < 50:
+            return 1.0
+        ratios.append(k / _block_ratio(hw, b, size)[0])
+    return float(np.clip(np.mean(ratios), 1.0, 100.0))
+
+
 def noise_pixel(img: np.ndarray, size: int = 7) -> float:
     """Robust per-pixel noise sigma including noise correlated over a few
     pixels (JPEG, a scintillator's spread, 8-bit quantisation): the MAD of the
@@ -177,6 +229,15 @@ def refine(a: np.ndarray, x0: float, y0: float, r0: float, opt: DetectOptions, o
     for it in range(7):
         rw = 1.15 * r + 3 * opt.blur_px + 1.5      # centroid window
         r_in = rw + 1.0
+        # a neighbour's shadow inside the window pulls the centroid and swells
+        # the size: the window (a disc about the centre, so a symmetric shadow's
+        # centroid stays unbiased) stops short of it, and the size is kept
+        capped = False
+        for ox_, oy_, or_ in others:
+            reach = np.hypot(ox_ - x, oy_ - y) - 1.15 * max(or_, r) - 2 * opt.blur_px - 1.0
+            # shadows closer than that touch: measured together (detect.crowded)
+            if r + 1.0 <= reach < rw:
+                rw, capped = reach, True
         r_out = r_in + max(4.0, 0.4 * r)
         c0, c1 = int(np.floor(x - r_out)), int(np.ceil(x + r_out)) + 1
         q0, q1 = int(np.floor(y - r_out)), int(np.ceil(y + r_out)) + 1
@@ -236,7 +297,7 @@ def refine(a: np.ndarray, x0: float, y0: float, r0: float, opt: DetectOptions, o
         m2 = Mxx + Myy - 2 * opt.blur_px**2 - 2 / 12
         if m2 <= 0:
             return None
-        r_new = float(np.sqrt(2.5 * m2))
+        r_new = r if capped else float(np.sqrt(2.5 * m2))   # a cut window's moment is not the size
         converged = abs(mx) < 2e-3 and abs(my) < 2e-3 and abs(r_new - r) < 0.02 * r
         r = r_new
         if not (0.25 * opt.diameter_px[0] <= r <= opt.diameter_px[1]):
@@ -255,6 +316,7 @@ def refine(a: np.ndarray, x0: float, y0: float, r0: float, opt: DetectOptions, o
     # the fitted background's slope uncertainty moves the centroid too
     slope_sig = sig_bg / (np.sqrt(max(n_in, 1)) * s_ring)
     sigma2 += (slope_sig * sum_e2 / V) ** 2
+    sigma2 *= opt.noise_kappa   # noise correlated over a few px averages out less
     clutter = noise > 0 and sig_bg > 1.5 * noise + 1e-6
     if clutter:
         # structure the background model cannot follow: its excess taken as a

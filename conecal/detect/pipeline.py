@@ -12,7 +12,7 @@ from .. import __version__
 from ..scan import Scan
 from . import kernels
 from .crowded import detect_frame
-from .frame import DetectOptions, NonFiniteFrame, noise_pixel
+from .frame import DetectOptions, NonFiniteFrame, noise_correlation, noise_pixel
 from .track import track
 
 MARKERS_FORMAT = "conecal-markers/1"
@@ -114,7 +114,7 @@ def scan_options(scan: Scan, opt: DetectOptions) -> DetectOptions:
         scan.stack.read(frames_idx[0], check=False)   # a bad stack is named at its first frame
         mid = scan.stack.read(frames_idx[len(frames_idx) // 2], check=False)
         if np.isfinite(mid).all():
-            opt = replace(opt, pixel_noise=noise_pixel(mid))
+            opt = replace(opt, pixel_noise=noise_pixel(mid), noise_kappa=noise_correlation(mid))
     return opt
 
 
@@ -199,7 +199,7 @@ def assemble(scan: Scan, opt: DetectOptions, frames_idx: list[int], results: lis
                       "contrast": "attenuation above background"},
             "detector": {"shape": [rows, cols]},
             "options": {"diameter_px": list(opt.diameter_px), "threshold": opt.threshold, "blur_px": opt.blur_px,
-                        "pixel_noise": round(opt.pixel_noise, 8),
+                        "pixel_noise": round(opt.pixel_noise, 8), "noise_kappa": round(opt.noise_kappa, 4),
                         "max_anisotropy": opt.max_anisotropy, "min_relative_contrast": opt.min_relative_contrast},
             "reference_mu_px": round(ref, 6),
             "identities": "phantom ids are assigned by fit-pose" if robot else "tracked across frames",
