@@ -111,3 +111,24 @@ def test_near_pairs_of_larger_spheres_keep_their_neighbour_out_of_the_window():
     assert len(blobs) == len(sph)
     err = [min(np.hypot(b.x - s[0], b.y - s[1]) for b in blobs) for s in sph]
     assert max(err) < 0.05
+
+
+@pytest.mark.parametrize("dist", [0, 4, 8])
+def test_a_sphere_at_the_foot_of_a_high_step_is_not_lost(dist):
+    """A 0.5 step 0-8 px beside the shadow spoils its background: the shadow
+    was dropped (misshapen, or no background at all); now the step is fitted
+    and removed and the sphere measured."""
+    import cv2
+
+    rng = np.random.default_rng(dist)
+    R, errs = 8.0, []
+    for trial in range(4):
+        x0, y0 = 100.3 + rng.uniform(-0.5, 0.5), 100.6 + rng.uniform(-0.5, 0.5)
+        img = np.full((200, 200), 0.1, np.float32)
+        img[:, int(x0 + R + dist):] += 0.5
+        img = cv2.GaussianBlur(img, (0, 0), 1.0) + render((200, 200), np.array([[x0, y0, R, 0.05]]), 1.0)
+        img = (img + rng.normal(0, 0.004, img.shape)).astype(np.float32)
+        blobs = detect_frame(img, DetectOptions(diameter_px=(9.6, 25.6), blur_px=1.0))
+        assert len(blobs) == 1 and "clutter" not in blobs[0].flags
+        errs.append(np.hypot(blobs[0].x - x0, blobs[0].y - y0))
+    assert max(errs) < 0.05

@@ -26,10 +26,18 @@ _CONE_OFFSET_PX = 0.03
 def detect_frame(a: np.ndarray, opt: DetectOptions) -> list[Blob]:
     """All sphere-like shadows in attenuation frame ``a`` (not yet filtered by
     contrast). Raises :class:`conecal.detect.frame.NonFiniteFrame` on NaN/inf."""
-    kept, merged, noise, invalid = detect_blobs(a, opt)
-    if not opt.joint_overlaps or not (kept or merged):
+    kept, merged, spoilt, noise, invalid = detect_blobs(a, opt)
+    if not opt.joint_overlaps or not (kept or merged or spoilt):
         return kept
-    return measure_crowded(a, kept, merged, opt, noise, invalid)
+    out = measure_crowded(a, kept, merged, opt, noise, invalid) if kept or merged else []
+    # a misshapen clutter blob is kept only if removing a straight step beside
+    # it leaves a clean sphere shadow, away from every marker already found
+    for b in spoilt:
+        b2 = _beside_step(a, b, opt, noise, invalid)
+        if (b2 is not b and b2.anisotropy <= opt.max_anisotropy
+                and all(np.hypot(b2.x - o.x, b2.y - o.y) > 0.8 * max(o.radius, b2.radius) for o in out)):
+            out.append(b2)
+    return out
 
 
 def _typical(kept: list[Blob], opt: DetectOptions):

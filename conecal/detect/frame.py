@@ -28,6 +28,8 @@ lives in :mod:`conecal.detect.pipeline`.
 
 from __future__ import annotations
 
+import functools
+
 from dataclasses import dataclass
 
 import cv2
@@ -166,6 +168,13 @@ def _block_ratio(d: np.ndarray, block: int, size: int) -> tuple[float, int]:
     return float(mad_sigma(m) ** 2 * block**2 / (mad_sigma(pix) ** 2 + 1e-30)), int(ok.sum())
 
 
+@functools.lru_cache(maxsize=8)
+def _white_ratio(shape: tuple[int, int], block: int, size: int) -> float:
+    """``_block_ratio`` of white noise through the same high-pass (its bias)."""
+    w = np.random.default_rng(0).normal(0, 1, shape).astype(np.float32)
+    return _block_ratio(w - cv2.blur(w, (size, size), borderType=cv2.BORDER_REPLICATE), block, size)[0]
+
+
 def noise_correlation(img: np.ndarray, blocks: tuple[int, ...] = (6, 10, 12), size: int = 31) -> float:
     """How much more a sum over a patch scatters than independent pixels would:
     kappa = sum of the noise's autocorrelation coefficients over all lags
@@ -179,21 +188,18 @@ def noise_correlation(img: np.ndarray, blocks: tuple[int, ...] = (6, 10, 12), si
     centroid better than white noise would, and 1 is returned when fewer than
     50 blocks are free of structure."""
     a = np.ascontiguousarray(img, dtype=np.float32)
-    if min(a.shape) > 768:          # the centre is enough, and keeps it fast
-        r0, c0 = (a.shape[0] - 768) // 2, (a.shape[1] - 768) // 2
-        a = a[r0:r0 + 768, c0:c0 + 768]
+    if min(a.shape) > 512:          # the centre is enough, and keeps it fast
+        r0, c0 = (a.shape[0] - 512) // 2, (a.shape[1] - 512) // 2
+        a = a[r0:r0 + 512, c0:c0 + 512]
     if not np.isfinite(a).all():
         return 1.0
-
     hp = a - cv2.blur(a, (size, size), borderType=cv2.BORDER_REPLICATE)
-    white = np.random.default_rng(0).normal(0, 1, a.shape).astype(np.float32)
-    hw = white - cv2.blur(white, (size, size), borderType=cv2.BORDER_REPLICATE)
     ratios = []
     for b in blocks:
         k, n = _block_ratio(hp, b, size)
         if n < 50:
             return 1.0
-        ratios.append(k / _block_ratio(hw, b, size)[0])
+        ratios.append(k / _white_ratio(a.shape, b, size))
     return float(np.clip(np.mean(ratios), 1.0, 100.0))
 
 
@@ -370,8 +376,9 @@ class NonFiniteFrame(ValueError):
 def detect_blobs(a: np.ndarray, opt: DetectOptions):
     """Sphere-like shadows in attenuation frame ``a``, each measured alone
     (not yet filtered by contrast): (kept blobs, blobs rejected as elongated
-    that may be merged shadows, the frame's noise sigma, the invalid-pixel
-    mask or None). :func:`conecal.detect.crowded.detect_frame` goes on to
+    that may be merged shadows, clutter-flagged blobs rejected as misshapen
+    that may be spheres beside an edge, the frame's noise sigma, the
+    invalid-pixel mask or None). :func:`conecal.detect.crowded.detect_frame` goes on to
     measure touching shadows together.
 
     Raises :class:`NonFiniteFrame` if ``a`` holds NaN or inf pixels.
@@ -397,6 +404,7 @@ def detect_blobs(a: np.ndarray, opt: DetectOptions):
     blobs: list[Blob] = []
     rough = [(cx, cy, opt.diameter_px[0] / 2) for cx, cy, _ in cands]
     strength = [h for _, _, h in cands]
+    failed = []
     for i, (cx, cy, h) in enumerate(cands):
         # a candidate inside an accepted blob is the same sphere
         if any((cx - b.x) ** 2 + (cy - b.y) ** 2 < (0.8 * b.radius) ** 2 for b in blobs):
@@ -408,6 +416,8 @@ def detect_blobs(a: np.ndarray, opt: DetectOptions):
         others = [o for o in others if not any((o[0] - b.x) ** 2 + (o[1] - b.y) ** 2 < (0.8 * b.radius) ** 2 for b in blobs)] + \
                  [(b.x, b.y, b.radius) for b in blobs]
         b = refine(a, cx, cy, r_guess, opt, others, noise, invalid)
+        if b is None and h > 3 * opt.threshold:
+            failed.append((cx, cy))   # a strong peak whose background could not be had
         if b is None or b.snr < opt.min_snr:
             continue
         if any((b.x - o.x) ** 2 + (b.y - o.y) ** 2 < (0.8 * o.radius) ** 2 for o in blobs):
@@ -428,14 +438,28 @@ def detect_blobs(a: np.ndarray, opt: DetectOptions):
         b = refine(a, cx, cy, r_guess, opt, [(o.x, o.y, o.radius) for o in blobs], noise, invalid)
         if b is not None and b.snr >= opt.min_snr and b.anisotropy < 3.0 and not b.flags:
             merged.append(b)   # never a marker by itself: split into spheres or dropped
+    spoilt = []
     for b in blobs:
         if b.anisotropy > opt.max_anisotropy and not set(b.flags) & {"truncated", "clutter"}:
             if b.anisotropy < 3.0:
                 merged.append(b)   # perhaps two or three shadows merged into one blob
             continue  # rods, edges
-        if b.anisotropy > 2.0:
-            continue  # not a sphere shadow even allowing for what lies across it
-        if "clutter" in b.flags and b.profile_misfit > 0.2 + 1.5 / b.radius:
-            continue  # a dense irregular blob (bone, debris), not a dome-shaped sphere shadow
+        if b.anisotropy > 2.0 or ("clutter" in b.flags and b.profile_misfit > 0.2 + 1.5 / b.radius):
+            # not a sphere shadow even allowing for what lies across it (a dense
+            # irregular blob, bone, debris) -- or a sphere beside a plate's edge
+            # that spoilt its window: detect.crowded tries it with a step removed
+            if "clutter" in b.flags and "truncated" not in b.flags:
+                spoilt.append(b)
+            continue
         kept.append(b)
-    return kept, merged, noise, invalid
+    # a strong peak with no background to be had (a plate's edge across its
+    # annulus): handed on as a spoilt blob of the expected size, unmeasured
+    for cx, cy in failed:
+        if any((cx - b.x) ** 2 + (cy - b.y) ** 2 < b.radius**2 for b in blobs):
+            continue
+        ix, iy = int(round(cx)), int(round(cy))
+        ring = a[max(iy - int(2 * r_guess), 0):iy + int(2 * r_guess) + 1, max(ix - int(2 * r_guess), 0):ix + int(2 * r_guess) + 1]
+        peak = float(a[iy, ix] - np.median(ring))
+        if peak > 0:
+            spoilt.append(Blob(cx, cy, r_guess, np.inf, peak / (2 * r_guess), peak, 1.0, ["clutter"], 0.0))
+    return kept, merged, spoilt, noise, invalid
