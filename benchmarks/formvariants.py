@@ -292,7 +292,10 @@ def case_backlash_fb(rng, k, t, th):
     # constant-plus-step, so the data cannot tell it from encoder_latency
     # (only a speed change within one direction could).
     b = rng.uniform(0.05, 0.2)
-    back = np.r_[0.0, np.diff(th)] < 0          # frames on the return leg
+    # frames on the return leg: from the first frame after the turn at FB_TURN
+    # (its logged angle is above the previous frame's, but the stage came to it
+    # moving back; the backlash is taken up by then)
+    back = k >= N_FRAMES // 2
     e = _none(k)
     e["dtheta"] = np.where(back, b, 0.0)
     w_fwd, w_back = FB_SPEEDS["backlash_fb"]
