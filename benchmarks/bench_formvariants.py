@@ -50,11 +50,29 @@ from conecal.cli.main import cli  # noqa: E402
 HERE = Path(__file__).parent
 
 
-def _generator():
-    spec = importlib.util.spec_from_file_location("formvariants", HERE / "formvariants.py")
+def _load(name):
+    spec = importlib.util.spec_from_file_location(name, HERE / f"{name}.py")
     mod = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(mod)
     return mod
+
+
+class _Generators:
+    """The marker-level generator and the image-level one (another helper's,
+    on the first's clean scans) behind one ``CASES`` / ``make_case``."""
+
+    def __init__(self):
+        self.marker, self.image = _load("formvariants"), _load("formvariants_image")
+        self.CASES = {**self.marker.CASES, **self.image.CASES}
+
+    def make_case(self, name, seed, out, images=False):
+        if name in self.image.CASES:
+            return self.image.make_case(name, seed, out, images=True)
+        return self.marker.make_case(name, seed, out, images=images)
+
+
+def _generator():
+    return _Generators()
 
 
 # conecal's effect labels -> the generator's family names
@@ -83,7 +101,8 @@ def run_case(gen, name: str, seed: int, root: Path, image: bool) -> dict:
     label = gen.make_case(name, seed, out, images=image)
     t_gen = time.perf_counter() - t0
     fam_expected = set(label["family"].split("+")) - {"none"}
-    image_case = bool(fam_expected & IMAGE_FAMILIES) or label.get("variable") == "image"
+    image_case = (bool(fam_expected & IMAGE_FAMILIES) or label.get("variable") == "image"
+                  or name in gen.image.CASES)
     r = CliRunner()
     res = r.invoke(cli, ["fit-rotation", str(out / "scan"), "--markers", str(out / "markers.json"),
                          "--geometry", str(out / "geometry.json"), "-o", str(out / "fit.json")])
@@ -135,13 +154,13 @@ def main() -> int:
     ap.add_argument("--keep", type=Path, default=None, help="keep the scans here")
     a = ap.parse_args()
     gen = _generator()
-    names = a.cases or list(gen.CASES)
+    names = a.cases or [n for n in gen.CASES if not (a.no_image and n in gen.image.CASES)]
     rows = []
     with tempfile.TemporaryDirectory() as tmp:
         root = a.keep or Path(tmp)
         root.mkdir(parents=True, exist_ok=True)
         for name in names:
-            for seed in range(a.clean_seeds if name == "clean" else a.seeds):
+            for seed in range(a.clean_seeds if name in ("clean", "image_clean") else a.seeds):
                 row = run_case(gen, name, seed, root, image=not a.no_image)
                 rows.append(row)
                 if "error" in row:
@@ -152,8 +171,8 @@ def main() -> int:
                       f"RMS {d['rms_px_before']:.4f}->{d['rms_px_after']:.4f} (floor {d['noise_floor_px']:.4f})  "
                       f"{row['t_diag']:.1f} s", flush=True)
     ok = [r for r in rows if "error" not in r]
-    clean = [r for r in ok if r["name"] == "clean"]
-    effect = [r for r in ok if r["name"] != "clean"]
+    clean = [r for r in ok if r["name"] in ("clean", "image_clean")]
+    effect = [r for r in ok if r["name"] not in ("clean", "image_clean")]
     print(f"\nright: {sum(r['right'] for r in ok)}/{len(rows)} "
           f"(effect cases {sum(r['right'] for r in effect)}/{len(effect)}, "
           f"clean {sum(r['right'] for r in clean)}/{len(clean)}; errors {len(rows) - len(ok)})")

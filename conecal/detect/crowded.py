@@ -26,10 +26,14 @@ _CONE_OFFSET_PX = 0.03
 def detect_frame(a: np.ndarray, opt: DetectOptions) -> list[Blob]:
     """All sphere-like shadows in attenuation frame ``a`` (not yet filtered by
     contrast). Raises :class:`conecal.detect.frame.NonFiniteFrame` on NaN/inf."""
-    kept, merged, spoilt, noise, invalid = detect_blobs(a, opt)
+    kept, merged, spoilt, noise, invalid, peaks = detect_blobs(a, opt)
     if not opt.joint_overlaps or not (kept or merged or spoilt):
         return kept
-    out = measure_crowded(a, kept, merged, opt, noise, invalid) if kept or merged else []
+    # a misshapen blob holding two or more candidate peaks is merged shadows
+    two = [b for b in spoilt if len(_peaks_in(b, peaks)) >= 2]
+    merged = merged + two
+    spoilt = [b for b in spoilt if b not in two]
+    out = measure_crowded(a, kept, merged, opt, noise, invalid, peaks) if kept or merged else []
     # a misshapen clutter blob is kept only if removing a straight step beside
     # it leaves a clean sphere shadow, away from every marker already found
     for b in spoilt:
@@ -73,26 +77,44 @@ def _axis(a: np.ndarray, b: Blob):
     return evec[:, 1], float(ev[1])
 
 
-def _split(a, m: Blob, R1: float, mu1: float, opt: DetectOptions, noise: float, mask_out, invalid):
+def _peaks_in(m: Blob, peaks) -> list:
+    """Candidate peaks (x, y) inside blob ``m``'s extent."""
+    return [p for p in peaks if (p[0] - m.x) ** 2 + (p[1] - m.y) ** 2 < (1.5 * m.radius + 2) ** 2]
+
+
+def _split(a, m: Blob, R1: float, mu1: float, opt: DetectOptions, noise: float, mask_out, invalid, peaks=()):
     """Spheres (k, 4) a merged blob holds, or None when one sphere (or none)
-    explains it as well (BIC) or the parts are not of the frame's spheres."""
-    if mu1 is not None and not 1.4 <= m.mu_px * m.radius**3 / (mu1 * R1**3) <= 3.6:
-        return None     # not the attenuation of 2 or 3 of the frame's spheres
+    explains it as well (BIC) or the parts are not of the frame's spheres.
+    Tried: 1, 2 or 3 spheres along the blob's long axis, and one sphere at
+    each candidate peak inside it (shadows of two sizes, chains that bend)."""
+    inside = _peaks_in(m, peaks)
+    # not the attenuation of 2 or 3 of the frame's spheres -- unless the
+    # top-hat saw as many peaks (spheres of two sizes)
+    ratio = m.mu_px * m.radius**3 / (mu1 * R1**3) if mu1 is not None else 2.0
+    if not 1.4 <= ratio <= (3.6 if len(inside) < 2 else 3.6 * len(inside)):
+        return None
     mu0 = mu1 if mu1 is not None else m.mu_px
     e, var = _axis(a, m)
     spread = var - R1 * R1 / 5 - opt.blur_px**2
-    if spread <= 0.25:
+    if spread <= 0.25 and len(inside) < 2:
         return None
-    best = None
+    starts = []
     for k in (1, 2, 3):
         if k == 1:
             pos = [0.0]
+        elif spread <= 0.25:
+            continue
         elif k == 2:
             pos = [-np.sqrt(spread), np.sqrt(spread)]
         else:
             d = np.sqrt(1.5 * spread)
             pos = [-d, 0.0, d]
-        s0 = np.array([[m.x + p * e[0], m.y + p * e[1], R1 if k > 1 else m.radius, mu0] for p in pos])
+        starts.append(np.array([[m.x + p * e[0], m.y + p * e[1], R1 if k > 1 else m.radius, mu0] for p in pos]))
+    if 2 <= len(inside) <= 4:
+        starts.append(np.array([[x, y, R1, mu0] for x, y in inside]))
+    best = None
+    for s0 in starts:
+        k = len(s0)
         fit = fit_group(a, s0, opt.blur_px, noise, mask_out, invalid)
         if fit is None:
             continue
@@ -110,14 +132,14 @@ def _split(a, m: Blob, R1: float, mu1: float, opt: DetectOptions, noise: float, 
 
 
 def measure_crowded(a: np.ndarray, kept: list[Blob], merged: list[Blob], opt: DetectOptions, noise: float,
-                    invalid=None) -> list[Blob]:
+                    invalid=None, peaks=()) -> list[Blob]:
     """``kept`` with touching shadows re-measured together and merged blobs
     split; each re-measured blob carries the ``overlap`` flag."""
     R1, mu1 = _typical(kept, opt)
     blobs = list(kept)
     for m in merged:
         near = [(b.x, b.y, b.radius) for b in blobs if (b.x - m.x) ** 2 + (b.y - m.y) ** 2 < (6 * m.radius) ** 2]
-        sph = _split(a, m, R1, mu1, opt, noise, near, invalid)
+        sph = _split(a, m, R1, mu1, opt, noise, near, invalid, peaks)
         if sph is None:
             continue
         for x, y, R, mu in sph:

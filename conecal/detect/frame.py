@@ -378,7 +378,7 @@ def detect_blobs(a: np.ndarray, opt: DetectOptions):
     (not yet filtered by contrast): (kept blobs, blobs rejected as elongated
     that may be merged shadows, clutter-flagged blobs rejected as misshapen
     that may be spheres beside an edge, the frame's noise sigma, the
-    invalid-pixel mask or None). :func:`conecal.detect.crowded.detect_frame` goes on to
+    invalid-pixel mask or None, every candidate peak (x, y)). :func:`conecal.detect.crowded.detect_frame` goes on to
     measure touching shadows together.
 
     Raises :class:`NonFiniteFrame` if ``a`` holds NaN or inf pixels.
@@ -462,4 +462,4 @@ def detect_blobs(a: np.ndarray, opt: DetectOptions):
         peak = float(a[iy, ix] - np.median(ring))
         if peak > 0:
             spoilt.append(Blob(cx, cy, r_guess, np.inf, peak / (2 * r_guess), peak, 1.0, ["clutter"], 0.0))
-    return kept, merged, spoilt, noise, invalid
+    return kept, merged, spoilt, noise, invalid, [(cx, cy) for cx, cy, _ in cands]

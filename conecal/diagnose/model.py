@@ -47,25 +47,6 @@ class CentroidPull:
 
 
 @dataclass(frozen=True, eq=False)
-class ReadingJump:
-    """A description, not an effect of the library: from ``t0`` (s) on, the
-    axis stood ``amount`` (its unit) beyond its logged reading, as after an
-    encoder slip or a knock. ``diagnose`` fits it where the residuals jump
-    in time, so that a smooth named effect is not claimed for a jump."""
-
-    axis: int
-    t0: float
-    amount: float
-    name = "reading_jump"
-    physics = "the axis' reading and its true position differ by a constant from one moment on (a slip or a knock)"
-
-    def apply(self, world):
-        q = np.array(world.true_readings, float)
-        q[np.asarray(world.times) >= self.t0, self.axis] += self.amount
-        return world.replace(true_readings=q)
-
-
-@dataclass(frozen=True, eq=False)
 class EllipseCentreBias:
     """What a point model of the markers leaves out: ``fraction`` of the
     offset between a sphere shadow's attenuation centroid (what ``detect``

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import functools
+
 from dataclasses import dataclass
 
 import numpy as np
@@ -252,6 +254,20 @@ class Backlash(Effect):
         return world.replace(true_readings=true)
 
 
+@functools.lru_cache(maxsize=64)
+def _spline_basis(s_bytes: bytes, order: int) -> np.ndarray:
+    """Cubic B-splines on ``order - 3`` even interior knots at s in [0, 1]
+    (given as float64 bytes), less their value at 0, the first dropped."""
+    from scipy.interpolate import BSpline
+
+    s = np.frombuffer(s_bytes, float)
+    n_inner = max(order - 3, 0)
+    knots = np.concatenate([[0.0] * 4, np.linspace(0, 1, n_inner + 2)[1:-1], [1.0] * 4])
+    B = BSpline.design_matrix(s, knots, 3).toarray()                     # (n, n_inner + 4)
+    B0 = BSpline.design_matrix(np.array([0.0]), knots, 3).toarray()
+    return (B - B0)[:, 1:]                                               # B_0 is the constant's share
+
+
 def time_basis(times, form: str, order: int, tau: float = 0.0) -> np.ndarray:
     """(n, order) functions of time (s), each zero at the scan's start, for a
     drift of the given ``form``:
@@ -273,13 +289,8 @@ def time_basis(times, form: str, order: int, tau: float = 0.0) -> np.ndarray:
             raise InputError(f"drift: a warm-up needs tau > 0 s, not {tau}")
         return (1.0 - np.exp(-(t - t0) / tau))[:, None]
     if form == "spline":
-        from scipy.interpolate import BSpline
-
-        n_inner = max(order - 3, 0)
-        knots = np.concatenate([[0.0] * 4, np.linspace(0, 1, n_inner + 2)[1:-1], [1.0] * 4])
-        B = BSpline.design_matrix(np.clip(s, 0, 1), knots, 3).toarray()   # (n, n_inner + 4)
-        B0 = BSpline.design_matrix(np.array([0.0]), knots, 3).toarray()
-        return (B - B0)[:, 1:]                                               # B_0 is the constant's share
+        # diagnose evaluates it thousands of times at the same times
+        return _spline_basis(np.clip(s, 0, 1).tobytes(), order).copy()
     raise InputError(f"drift: unknown form {form!r} (poly, warmup, spline)")
 
 
