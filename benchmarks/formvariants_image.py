@@ -102,8 +102,9 @@ def _noisy(I, n):
 
 
 def _store(I):
-    v = np.rint(SCALE * -np.log(I / I0))
-    return np.clip(v, 0, 65535).astype(np.uint16)
+    # float32 -ln(I/I0): the contract's ``values: attenuation`` has no scale
+    # key, so an integer store with a factor would be read as attenuation x1000
+    return (-np.log(I / I0)).astype(np.float32)
 
 
 def _magnification(S, p, g):
@@ -138,7 +139,7 @@ def _disc_kernel(radius_px, sub=9):
 # (stack of stored frames (F, ROWS, COLS) uint16 or uint8, params dict).
 def build_image_clean(sim, rng, noise):
     F = fv.N_FRAMES
-    out = np.empty((F, fv.ROWS, fv.COLS), np.uint16)
+    out = np.empty((F, fv.ROWS, fv.COLS), np.float32)
     for i in range(F):
         out[i] = _store(_noisy(I0 * np.exp(-_attenuation(sim, i)), noise[i]))
     return out, {}
@@ -184,7 +185,7 @@ def build_lag_far(sim, rng, noise):
     def frame(i):
         return Iz[i] if i >= 0 else pre[i]
 
-    out = np.empty((F, fv.ROWS, fv.COLS), np.uint16)
+    out = np.empty((F, fv.ROWS, fv.COLS), np.float32)
     for i in range(F):
         rec = (1 - a) * Iz[i]
         for jj, ww in zip(j, w):
@@ -232,7 +233,7 @@ def _blurred_transmission(sim, i, r_spot):
 def build_disc_focal_spot(sim, rng, noise):
     r_spot = rng.uniform(0.1, 0.3)
     F = fv.N_FRAMES
-    out = np.empty((F, fv.ROWS, fv.COLS), np.uint16)
+    out = np.empty((F, fv.ROWS, fv.COLS), np.float32)
     radii = []
     for i in range(F):
         T, rad = _blurred_transmission(sim, i, r_spot)
@@ -267,7 +268,7 @@ def build_scatter_field(sim, rng, noise):
     C, R = np.meshgrid(np.arange(fv.COLS), np.arange(fv.ROWS))
     gfield = np.exp(-((C - cc[0]) ** 2 + (R - cc[1]) ** 2) / (2 * sig * sig))
     F = fv.N_FRAMES
-    out = np.empty((F, fv.ROWS, fv.COLS), np.uint16)
+    out = np.empty((F, fv.ROWS, fv.COLS), np.float32)
     for i in range(F):
         I = I0 * np.exp(-_attenuation(sim, i)) + s * I0 * gfield
         out[i] = _store(_noisy(I, noise[i]))
@@ -288,7 +289,7 @@ def build_beam_hardening_poly(sim, rng, noise):
         p[i] = _attenuation(sim, i)
     pmax = float(p.max())
     c = f / pmax
-    out = np.empty((F, fv.ROWS, fv.COLS), np.uint16)
+    out = np.empty((F, fv.ROWS, fv.COLS), np.float32)
     for i in range(F):
         pi = p[i].astype(np.float64)
         out[i] = _store(_noisy(I0 * np.exp(-(pi - c * pi * pi)), noise[i]))
