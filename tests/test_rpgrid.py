@@ -472,3 +472,17 @@ def test_an_object_filling_the_field_of_view_fails_before_the_tables(small_circu
     res = CliRunner().invoke(cli, ["rp-grid", str(scan), "-o", str(tmp_path / "rp.json")])
     assert res.exit_code == 1 and "0 usable planes" in res.output and "before the tables" in res.output, res.output
     assert time.perf_counter() - t0 < 20 and not (tmp_path / "rp.json").exists()
+
+
+def test_options_that_lost_their_benchmark_say_they_are_deprecated(tmp_path):
+    """Said before any work (here the scan is missing: exit 2 after the warning)."""
+    from click.testing import CliRunner
+
+    from conecal.cli.main import cli
+
+    res = CliRunner().invoke(cli, ["rp-grid", str(tmp_path / "none"), "-o", str(tmp_path / "rp.json"),
+                                   "--kernel-order", "4", "--fan-sigma-deg", "1"])
+    assert "deprecated: --kernel-order 4" in res.output and "deprecated: --fan-sigma-deg" in res.output
+    assert res.exit_code == 2
+    plain = CliRunner().invoke(cli, ["rp-grid", str(tmp_path / "none"), "-o", str(tmp_path / "rp.json")])
+    assert "deprecated" not in plain.output

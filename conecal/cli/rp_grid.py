@@ -78,6 +78,19 @@ def command(scan, output, ranges, pairs, planes_per_pair, angles, crop, keep_tru
       conecal rp-grid demo/circular -o demo/rp.json
       conecal rp-grid scans/ct --range shift_u_px=40 --range eta_deg=5 -o rp.json
     """
+    # options that lost their benchmarks (benchmarks/RESULTS.md): still honoured
+    # during a deprecation period, then removed
+    retired = []
+    if kernel_order != "2":
+        retired.append("--kernel-order 4 (benchmarks/RESULTS.md, 'a fourth-order derivative kernel': 1.85x the noise, "
+                       "mixed on the benchmark)")
+    if fan_sigma_deg:
+        retired.append("--fan-sigma-deg (benchmarks/RESULTS.md, 'the fan smoothing inside rp-grid': less bias "
+                       "without noise, the wrong basin with it)")
+    if interpolation != "spline":
+        retired.append(f"--interpolation {interpolation} (benchmarks/RESULTS.md, 'B-spline look-ups by default')")
+    for r in retired:
+        info(f"deprecated: {r}; it will be removed in a later release")
     opt = RPOptions(ranges=_ranges(ranges), pairs=pairs, planes_per_pair=planes_per_pair, n_angles=angles,
                     crop=_crop(crop), exclude_truncated=not keep_truncated, smooth_px=smooth_px,
                     kernel_order=int(kernel_order), fan_sigma_deg=fan_sigma_deg,
@@ -96,4 +109,4 @@ def command(scan, output, ranges, pairs, planes_per_pair, angles, crop, keep_tru
          f"over {res.planes['used']} planes")
     if doc["fit"]["undetermined"]:
         info(f"warning: the scan does not determine {', '.join(doc['fit']['undetermined'])} "
-             f"(sigma beyond {', '.join(f'{RPOptions().undetermined_sigma[n]:g}' for n in doc['fit']['undetermined'])})")
+             f"(sigma beyond {', '.join(f'{opt.undetermined_sigma[n]:g}' for n in doc['fit']['undetermined'])})")
