@@ -151,9 +151,11 @@ def noise_small(img: np.ndarray) -> float:
 
 
 def _block_ratio(d: np.ndarray, block: int, size: int) -> tuple[float, int]:
-    """block**2 var(block means of d) / var(d) over the blocks free of
-    structure (robustly, by MADs), and how many blocks that was. A shadow and
-    the halo the high-pass leaves around it (``size`` px) are kept out."""
+    """block**2 var(second differences of neighbouring block means of d) /
+    var(d) over blocks free of structure (robustly, by MADs), and how many
+    differences that was. A shadow and the halo the high-pass leaves around
+    it (``size`` px) are kept out; the second difference removes what smooth
+    background (a holder's curvature) the high-pass leaves."""
     h, w = (d.shape[0] // block) * block, (d.shape[1] // block) * block
     d = d[:h, :w]
     sm = cv2.blur(d, (5, 5))
@@ -161,11 +163,17 @@ def _block_ratio(d: np.ndarray, block: int, size: int) -> tuple[float, int]:
     busy = cv2.dilate(busy.astype(np.uint8), np.ones((size, size), np.uint8)) > 0
     blocks = d.reshape(h // block, block, w // block, block)
     ok = ~busy.reshape(h // block, block, w // block, block).any(axis=(1, 3))
-    if ok.sum() < 50:
-        return 1.0, int(ok.sum())
-    m = blocks.mean(axis=(1, 3))[ok]
+    m = blocks.mean(axis=(1, 3))
+    dd = []
+    for M, K in ((m, ok), (m.T, ok.T)):
+        D = M[:, 1:-1] - 0.5 * (M[:, :-2] + M[:, 2:])
+        use = K[:, 1:-1] & K[:, :-2] & K[:, 2:]
+        dd.append(D[use])
+    dd = np.concatenate(dd)
+    if len(dd) < 50:
+        return 1.0, len(dd)
     pix = blocks.transpose(0, 2, 1, 3)[ok].ravel()
-    return float(mad_sigma(m) ** 2 * block**2 / (mad_sigma(pix) ** 2 + 1e-30)), int(ok.sum())
+    return float(mad_sigma(dd) ** 2 * block**2 / (mad_sigma(pix) ** 2 + 1e-30)), len(dd)
 
 
 @functools.lru_cache(maxsize=8)
