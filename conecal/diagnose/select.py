@@ -222,6 +222,36 @@ def choose_members(rows: list[dict], cands, evals) -> None:
                                if c.k > pick.k else f"{pick.label} predicts held-out data better")
 
 
+def _best_partner(model, by, a: str, claimed, e_best):
+    """The second effect beside ``a``: among the claimable candidates of other
+    families (up to 8), the one whose pair with ``a`` has the lowest BIC and
+    is itself claimable -- BIC, so that a second flexible form does not win
+    by absorbing what a two-parameter effect explains. (label, evaluation)."""
+    out = None
+    for r in [r for r in claimed[1:] if by[r["effect"]].family_key != by[a].family_key][:8]:
+        e2 = evaluate(model, [by[a], by[r["effect"]]])
+        if score(e_best, e2, by[r["effect"]].k)["claimable"] and (out is None or e2["bic"] < out[1]["bic"]):
+            out = (r["effect"], e2)
+    return out
+
+
+def _respecify(model, by, rows, a: str, b: str, e_pair, evals):
+    """Given the partner ``b``, the most specific member of ``a``'s family that
+    predicts held-out data as well beside it (paired difference within two
+    standard errors, and 3): a flexible form chosen alone may have been
+    absorbing the partner's part. (label, evaluation)."""
+    bad = {r["effect"] for r in rows if r.get("degenerate") or r.get("impossible")}
+    fam = sorted((c for c in by.values() if c.family_key == by[a].family_key and c.k < by[a].k
+                  and c.label not in bad), key=lambda c: c.k)
+    for c in fam:
+        e3 = evaluate(model, [c, by[b]])
+        d = e3["heldout_r2"] - e_pair["heldout_r2"]
+        se = float(np.sqrt(len(d) * d.var())) if len(d) > 1 else 0.0
+        if d.sum() < max(3.0, 2 * se):
+            return c.label, e3
+    return a, e_pair
+
+
 def rank(rows: list[dict], heldout_r2: dict) -> tuple[list[dict], list[str]]:
     """Sort candidate rows by held-out gain (in place); return the claimable
     ones, best first, and the labels of those the held-out data cannot tell
@@ -353,17 +383,13 @@ def diagnose(model, *, alpha: float = 0.01, progress=None, tie_breaker=None) -> 
         after = structure_tests(model, model.whitened(e_best["effects"], e_best["x9"]), alpha)
         if any(t["significant"] for t in after):
             # one effect does not explain it all: try pairs with the best
-            best_pair, best_gain = None, 0.0
             by = {c.label: c for c in cands}
-            for r in claimed[1:4]:
-                e2 = evaluate(model, [by[best["effect"]], by[r["effect"]]])
-                sc = score(e_best, e2, by[r["effect"]].k)
-                if sc["claimable"] and sc["heldout_gain_chi2"] > best_gain:
-                    best_pair, best_gain = (r["effect"], e2), sc["heldout_gain_chi2"]
+            best_pair = _best_partner(model, by, best["effect"], claimed, e_best)
             if best_pair is not None:
-                chosen.append(best_pair[0])
+                first = _respecify(model, by, rows, best["effect"], best_pair[0], best_pair[1], evals)
+                chosen = [first[0], best_pair[0]]
                 ambiguous = [a for a in ambiguous if a != best_pair[0]]
-                evals["+".join(chosen)] = best_pair[1]
+                evals["+".join(chosen)] = first[1]
     blocks = None
     if chosen:
         by = {c.label: c for c in cands}
