@@ -100,14 +100,12 @@ def _split(a, m: Blob, R1: float, mu1: float, opt: DetectOptions, noise: float, 
     mu0 = mu1 if mu1 is not None else m.mu_px
     e, var = _axis(a, m)
     spread = var - R1 * R1 / 5 - opt.blur_px**2
-    if spread <= 0.25 and len(inside) < 2:
+    if spread <= 0.25:
         return None
     starts = []
     for k in (1, 2, 3):
         if k == 1:
             pos = [0.0]
-        elif spread <= 0.25:
-            continue
         elif k == 2:
             pos = [-np.sqrt(spread), np.sqrt(spread)]
         else:

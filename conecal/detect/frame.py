@@ -187,11 +187,13 @@ def noise_correlation(img: np.ndarray, blocks: tuple[int, ...] = (6, 10, 12), si
     """How much more a sum over a patch scatters than independent pixels would:
     kappa = sum of the noise's autocorrelation coefficients over all lags
     (1 for white noise; ~4 pi s^2 for noise blurred by a Gaussian of s px, as
-    a scintillator does). Measured from the variance of 8 x 8 block means of
-    the high-passed image against its per-pixel variance, on blocks away from
-    any structure, and divided by the same statistic of white noise through
-    the same filter. A centroid's variance is kappa times the white-noise
-    formula when its weights vary slowly over the correlation length. Never
+    a scintillator does). Measured from the variance of block means of the
+    high-passed image (their second differences, so a holder's curvature does
+    not count) against its per-pixel variance, on blocks away from any
+    structure, divided by the same statistic of white noise through the same
+    filter, averaged over block sizes that are not multiples of JPEG's 8 px.
+    A centroid's variance is kappa times the white-noise formula when its
+    weights vary slowly over the correlation length. Never
     below 1: anti-correlated noise (JPEG's block quantisation) does not make a
     centroid better than white noise would, and 1 is returned when fewer than
     50 blocks are free of structure."""

@@ -21,6 +21,7 @@ from .candidates import Candidate, candidates  # noqa: F401  (Candidate: re-expo
 from .locate import describe, detector_field, frame_curves, locate
 from .descriptions import plain_descriptions
 from .model import EllipseCentreBias
+from .ranking import choose_members, not_worse, paired_behind, rank  # noqa: F401  (rank: image level)
 from .structure import structure_tests
 
 
@@ -181,47 +182,6 @@ ADEQUATE_RMS = 1.15
 JUMP_MARGIN_BIC = 10.0
 
 
-def _behind(evals, a: str, b: str) -> tuple[float, float]:
-    """Paired held-out chi^2 by which ``a`` trails ``b`` and its standard error."""
-    d = evals[a]["heldout_r2"] - evals[b]["heldout_r2"]
-    return float(d.sum()), (float(np.sqrt(len(d) * d.var())) if len(d) > 1 else 0.0)
-
-
-def choose_members(rows: list[dict], cands, evals) -> None:
-    """Per family, keep the most specific member that predicts held-out data
-    as well as the family's best (paired difference within two standard
-    errors, and 3); the others are not claimable (in place, with the reason)."""
-    row_of = {r["effect"]: r for r in rows}
-    fams = {}
-    for c in cands:
-        fams.setdefault(c.family_key, []).append(c)
-    for fam, members in fams.items():
-        if len(members) < 2:
-            continue
-        fit = [c for c in members if not row_of[c.label].get("degenerate") and not row_of[c.label].get("impossible")]
-        if not fit:
-            continue
-        best = max(fit, key=lambda c: row_of[c.label]["heldout_gain_chi2"])
-        pick = best
-        for c in sorted(fit, key=lambda c: (c.k, -row_of[c.label]["heldout_gain_chi2"])):
-            if c.k >= best.k:
-                break
-            behind, se = _behind(evals, c.label, best.label)
-            if behind < max(3.0, 2 * se):
-                pick = c
-                break
-        for c in members:
-            r = row_of[c.label]
-            r["family"] = fam
-            if c is pick:
-                r["family_choice"] = True
-                continue
-            if r["claimable"]:
-                r["claimable"] = False
-            r["not_chosen"] = (f"{pick.label} ({pick.k} parameters) predicts held-out data as well"
-                               if c.k > pick.k else f"{pick.label} predicts held-out data better")
-
-
 def _best_partner(model, by, a: str, claimed, e_best):
     """The second effect beside ``a``: among the claimable candidates of other
     families (up to 8), the one whose pair with ``a`` has the lowest BIC and
@@ -235,7 +195,7 @@ def _best_partner(model, by, a: str, claimed, e_best):
     return out
 
 
-def _respecify(model, by, rows, a: str, b: str, e_pair, evals):
+def _respecify(model, by, rows, a: str, b: str, e_pair):
     """Given the partner ``b``, the most specific member of ``a``'s family that
     predicts held-out data as well beside it (paired difference within two
     standard errors, and 3): a flexible form chosen alone may have been
@@ -245,33 +205,10 @@ def _respecify(model, by, rows, a: str, b: str, e_pair, evals):
                   and c.label not in bad), key=lambda c: c.k)
     for c in fam:
         e3 = evaluate(model, [c, by[b]])
-        d = e3["heldout_r2"] - e_pair["heldout_r2"]
-        se = float(np.sqrt(len(d) * d.var())) if len(d) > 1 else 0.0
-        if d.sum() < max(3.0, 2 * se):
+        behind, se = paired_behind(e3["heldout_r2"], e_pair["heldout_r2"])
+        if not_worse(behind, se):
             return c.label, e3
     return a, e_pair
-
-
-def rank(rows: list[dict], heldout_r2: dict) -> tuple[list[dict], list[str]]:
-    """Sort candidate rows by held-out gain (in place); return the claimable
-    ones, best first, and the labels of those the held-out data cannot tell
-    from the best: a paired comparison of their held-out squared residuals
-    (``heldout_r2``: label -> per-observation array) whose difference is
-    within two standard errors (and at least 3). Each row gets
-    ``behind_best_chi2`` and its standard error."""
-    rows.sort(key=lambda r: -r["heldout_gain_chi2"])
-    claimed = [r for r in rows if r["claimable"]]
-    if not claimed:
-        return [], []
-    best = claimed[0]
-    ambiguous = []
-    for r in claimed[1:]:
-        d = heldout_r2[r["effect"]] - heldout_r2[best["effect"]]
-        se = float(np.sqrt(len(d) * d.var())) if len(d) > 1 else 0.0
-        r["behind_best_chi2"], r["behind_best_stderr"] = float(d.sum()), se
-        if d.sum() < max(3.0, 2 * se):
-            ambiguous.append(r["effect"])
-    return claimed, ambiguous
 
 
 def _base_unit(name: str) -> tuple[str, float]:
@@ -386,7 +323,7 @@ def diagnose(model, *, alpha: float = 0.01, progress=None, tie_breaker=None) -> 
             by = {c.label: c for c in cands}
             best_pair = _best_partner(model, by, best["effect"], claimed, e_best)
             if best_pair is not None:
-                first = _respecify(model, by, rows, best["effect"], best_pair[0], best_pair[1], evals)
+                first = _respecify(model, by, rows, best["effect"], best_pair[0], best_pair[1])
                 chosen = [first[0], best_pair[0]]
                 ambiguous = [a for a in ambiguous if a != best_pair[0]]
                 evals["+".join(chosen)] = first[1]
