@@ -446,7 +446,8 @@ def detect_blobs(a: np.ndarray, opt: DetectOptions):
         if any((cx - b.x) ** 2 + (cy - b.y) ** 2 < b.radius**2 for b in blobs + merged):
             continue
         b = refine(a, cx, cy, r_guess, opt, [(o.x, o.y, o.radius) for o in blobs], noise, invalid)
-        if b is not None and b.snr >= opt.min_snr and b.anisotropy < 3.0 and not b.flags:
+        # (clutter allowed: the neighbours that make a cluster disturb its background)
+        if b is not None and b.snr >= opt.min_snr and b.anisotropy < 3.0 and "truncated" not in b.flags:
             merged.append(b)   # never a marker by itself: split into spheres or dropped
     spoilt = []
     for b in blobs:

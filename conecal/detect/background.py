@@ -1,0 +1,201 @@
+"""Structured background beside a sphere shadow: an edge, a ridge, a wall.
+
+A plate's edge, a holder's wall or a tube seen side-on puts a background
+into a shadow's window that no plane follows: a step, a cusp-shaped ridge
+(the tangent rays through a tube's wall), a hump. What these share is that
+the background is (nearly) constant along one direction across the patch.
+:func:`fit_profile` models it so: a free 1-D profile ``f(s)`` of the
+coordinate across the edge, ``s = u + kappa v^2`` (``u`` across, ``v`` along
+it; ``kappa`` lets the level lines bend, as a tube seen end-on or an
+intensifier's round field does), plus a slope along it, fitted jointly with
+the sphere's chord profile. Every level line through the shadow also runs
+outside it, which is what makes the profile under the shadow knowable.
+The profile is piecewise linear on 1 px knots, lightly held smooth where
+no pixel pins it. Units: px (columns x, rows y), attenuation.
+"""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+
+from ..errors import FitError
+from ..fit.core import Parameter, solve
+from .overlap import render
+
+_KNOT_PX = 1.0
+# curvatures (1/px) tried before the joint fit: level lines straight, or bent
+# to a circle of radius 40 px either way
+_KAPPAS = (-1 / 80, 0.0, 1 / 80)
+
+
+def _hat(s: np.ndarray, s0: float, n: int):
+    """Piecewise-linear basis on knots ``s0 + k`` (k < n): (index, weight of
+    the left knot, slope sign domain) for every sample; ``s`` clamped."""
+    t = np.clip((s - s0) / _KNOT_PX, 0, n - 1 - 1e-9)
+    i = np.floor(t).astype(int)
+    return i, t - i
+
+
+def _patch(a, x, y, R, blur, others, invalid):
+    """The box (c0, q0, c1, q1) of half-width ~3R about (x, y), its pixels
+    (float64), and the weights (0 on other shadows and invalid pixels)."""
+    rows, cols = a.shape
+    half = int(np.ceil(3 * R + 3 * blur + 4))
+    c0, q0 = max(int(x) - half, 0), max(int(y) - half, 0)
+    c1, q1 = min(int(x) + half + 1, cols), min(int(y) + half + 1, rows)
+    roi = a[q0:q1, c0:c1].astype(np.float64)
+    h, w = roi.shape
+    yy, xx = np.mgrid[0:h, 0:w].astype(float)
+    wgt = np.ones((h, w))
+    for ox, oy, orad in others:
+        wgt[(xx - (ox - c0)) ** 2 + (yy - (oy - q0)) ** 2 < (1.15 * orad + 3 * blur + 2) ** 2] = 0
+    if invalid is not None:
+        wgt[invalid[q0:q1, c0:c1]] = 0
+    return (c0, q0, c1, q1), roi, wgt, xx, yy
+
+
+def structured(a: np.ndarray, x: float, y: float, R: float, blur: float, noise: float, invalid=None,
+               others=()) -> bool:
+    """Whether the background around the shadow at (x, y) holds more than a
+    quadratic surface follows: the scatter of a quadratic fitted to the
+    patch outside the shadow (half-width ~3R) over 1.3x the pixel noise
+    ``noise``. Cheap; decides where :func:`fit_profile` is worth its cost."""
+    (c0, q0, _, _), roi, wgt, xx, yy = _patch(a, x, y, R, blur, others, invalid)
+    dx, dy = xx - (x - c0), yy - (y - q0)
+    m = (dx * dx + dy * dy > (1.2 * R + 3 * blur + 2) ** 2) & (wgt > 0)
+    if m.sum() < 40:
+        return False
+    X, Y = dx[m] / R, dy[m] / R
+    A = np.column_stack([np.ones_like(X), X, Y, X * X, X * Y, Y * Y])
+    c, *_ = np.linalg.lstsq(A, roi[m], rcond=None)
+    return float(np.std(roi[m] - A @ c)) > 1.3 * noise
+
+
+def fit_profile(a: np.ndarray, x: float, y: float, R: float, mu: float, blur: float, noise: float,
+                invalid=None, others=()):
+    """The background across an edge beside the sphere shadow at (x, y),
+    radius R px: returns (box (c0, q0, c1, q1), background image over the
+    box without the sphere, fitted centre x, y) or None when the patch holds
+    no structure beyond a plane (the profile's gain in chi-square under
+    3 per knot + 50) or the fit fails. ``others``: (x, y, r) of shadows kept out."""
+    box, roi_full, wgt, xx, yy = _patch(a, x, y, R, blur, others, invalid)
+    c0, q0, c1, q1 = box
+    # large shadows: fitted on pixels binned fb x fb (the cost grows with the
+    # patch's area and knots), in binned units until the background is made
+    fb = max(1, int(R // 6))
+    cx_full, cy_full = x - c0, y - q0
+    if fb > 1:
+        hb, wb = roi_full.shape[0] // fb, roi_full.shape[1] // fb
+        roi = roi_full[:hb * fb, :wb * fb].reshape(hb, fb, wb, fb).mean(axis=(1, 3))
+        wgt = wgt[:hb * fb, :wb * fb].reshape(hb, fb, wb, fb).min(axis=(1, 3))
+        yy, xx = np.mgrid[0:hb, 0:wb].astype(float)
+        R, mu, noise = R / fb, mu * fb, noise / fb
+        blur = np.sqrt(blur**2 + (fb * fb - 1) / 12.0) / fb
+    else:
+        roi = roi_full
+    h, w = roi.shape
+    if h < 8 or w < 8:
+        return None
+    cx, cy = (cx_full + 0.5) / fb - 0.5, (cy_full + 0.5) / fb - 0.5
+    outside = ((xx - cx) ** 2 + (yy - cy) ** 2 > (1.2 * R + 3 * blur + 2) ** 2) & (wgt > 0)
+    if outside.sum() < 40:
+        return None
+    gx = cv2.Sobel(roi.astype(np.float32), cv2.CV_32F, 1, 0, ksize=3)
+    gy = cv2.Sobel(roi.astype(np.float32), cv2.CV_32F, 0, 1, ksize=3)
+    Sxx, Syy, Sxy = (gx * gx * outside).sum(), (gy * gy * outside).sum(), (gx * gy * outside).sum()
+    phi0 = 0.5 * np.arctan2(2 * Sxy, Sxx - Syy)
+    dx, dy = xx - cx, yy - cy
+    span = np.hypot(dx, dy).max()
+    s_lo = -span - abs(_KAPPAS[0]) * span**2 - 2
+    n_knots = int(np.ceil((2 * span + 2 * abs(_KAPPAS[0]) * span**2 + 4) / _KNOT_PX)) + 1
+    wv = np.sqrt(wgt.ravel()) / noise
+    y_obs = roi.ravel()
+    n_pix = h * w
+    reg_w = 0.05 / noise
+
+    def coords(phi, kappa):
+        u = dx * np.cos(phi) + dy * np.sin(phi)
+        v = -dx * np.sin(phi) + dy * np.cos(phi)
+        return u.ravel(), v.ravel(), (u + kappa * v * v).ravel()
+
+    rows_ = np.arange(n_pix)
+
+    def basis(s):
+        i, t = _hat(s, s_lo, n_knots)
+        B = np.zeros((n_pix, n_knots))
+        B[rows_, i] = 1 - t       # i < n_knots - 1: each row's two knots differ
+        B[rows_, i + 1] = t
+        return B, i
+
+    D2 = (np.eye(n_knots, k=-1) - 2 * np.eye(n_knots) + np.eye(n_knots, k=1))[1:-1]
+
+    # direction and bend first, from the background alone (sphere held at its guess)
+    sph0 = render((h, w), np.array([[cx, cy, R, mu]]), blur).ravel()
+    best = None
+    for dphi in (-0.15, 0.0, 0.15):
+        for kappa in _KAPPAS:
+            u, v, s = coords(phi0 + dphi, kappa)
+            B, _ = basis(s)
+            A = np.vstack([np.column_stack([B, v, sph0]) * wv[:, None],
+                           np.column_stack([reg_w * D2, np.zeros((len(D2), 2))])])
+            rhs = np.concatenate([wv * y_obs, np.zeros(len(D2))])
+            # normal equations: an SVD of this 2000 x 60 matrix cost 40x
+            AtA = A.T @ A
+            coef = np.linalg.solve(AtA + 1e-9 * np.trace(AtA) / len(AtA) * np.eye(len(AtA)), A.T @ rhs)
+            chi2 = float(np.sum((A @ coef - rhs) ** 2))
+            if best is None or chi2 < best[0]:
+                best = (chi2, phi0 + dphi, kappa, coef)
+    # a plane and the sphere alone: the profile must earn its knots
+    P = np.column_stack([np.ones(n_pix), dx.ravel(), dy.ravel(), sph0]) * wv[:, None]
+    cp, *_ = np.linalg.lstsq(P, wv * y_obs, rcond=None)
+    chi2_plane = float(np.sum((P @ cp - wv * y_obs) ** 2))
+    if chi2_plane - best[0] < 3 * n_knots + 50:
+        return None
+    _, phi_s, kappa_s, coef = best
+    mu_s = max(mu * coef[-1], 1e-6)
+    k = n_knots
+
+    def split(p):
+        return p[0], p[1], p[2:6], p[6:6 + k], p[6 + k]
+
+    def residuals(p):
+        phi, kappa, sp, f, bt = split(p)
+        u, v, s = coords(phi, kappa)
+        i, t = _hat(s, s_lo, k)
+        bg = f[i] * (1 - t) + f[i + 1] * t + bt * v
+        model = render((h, w), sp[None, :], blur).ravel() + bg
+        return np.concatenate([wv * (model - y_obs), reg_w * (D2 @ f)])
+
+    def jacobian(p):
+        phi, kappa, sp, f, bt = split(p)
+        u, v, s = coords(phi, kappa)
+        B, i = basis(s)
+        slope = (f[i + 1] - f[i]) / _KNOT_PX
+        ds_dphi = v * (1 - 2 * kappa * u)
+        _, Js = render((h, w), sp[None, :], blur, jacobian=True)
+        J = np.column_stack([slope * ds_dphi - bt * u, slope * v * v, Js, B, v])
+        reg = np.zeros((len(D2), J.shape[1]))
+        reg[:, 6:6 + k] = reg_w * D2
+        return np.vstack([J * wv[:, None], reg])
+
+    params = [Parameter("phi", phi_s, scale=0.01), Parameter("kappa", kappa_s, scale=1e-3),
+              Parameter("x", cx, scale=0.1), Parameter("y", cy, scale=0.1), Parameter("R", R, scale=0.1),
+              Parameter("mu", mu_s, scale=0.05 * mu_s)]
+    params += [Parameter(f"f{j}", float(coef[j])) for j in range(k)] + [Parameter("bt", float(coef[k]))]
+    try:
+        res = solve(params, residuals, jacobian, max_nfev=60, tol=1e-8, large=True)
+    except (FitError, np.linalg.LinAlgError, ValueError):
+        return None
+    phi, kappa, sp, f, bt = split(res.x)
+    if not (sp[2] > 0.5 and sp[3] > 0) or np.hypot(sp[0] - cx, sp[1] - cy) > R or abs(kappa) > 1 / 30:
+        return None
+    # the background at every pixel of the full-resolution box
+    hf, wf = roi_full.shape
+    yf, xf = np.mgrid[0:hf, 0:wf].astype(float)
+    dxf, dyf = (xf + 0.5) / fb - 0.5 - cx, (yf + 0.5) / fb - 0.5 - cy
+    u = dxf * np.cos(phi) + dyf * np.sin(phi)
+    v = -dxf * np.sin(phi) + dyf * np.cos(phi)
+    i, t = _hat(u + kappa * v * v, s_lo, k)
+    bg = f[i] * (1 - t) + f[i + 1] * t + bt * v
+    return box, bg.astype(np.float32), (sp[0] + 0.5) * fb - 0.5 + c0, (sp[1] + 0.5) * fb - 0.5 + q0

@@ -1,0 +1,144 @@
+"""A blob holding several sphere shadows, split into them.
+
+Two or more shadows that overlap deeply, or a chain or cluster of them
+(a helix seen along its axis, a ball phantom at an oblique view), make one
+blob that is too big, too elongated or too misshapen to be one sphere. It
+is fitted with one sphere, then one more at a time, each new one started
+where the previous fit's residual holds the most attenuation of a sphere's
+size (a matched filter on the residual, so it works for any arrangement,
+not only along a line), all on one patch so the fits' chi-squares compare.
+A sphere is added while the chi-square falls by more than BIC asks (with
+the noise's pixel correlation counted) *and* by a fair share of the new
+sphere's own model energy or most of the misfit left, or by bringing a
+too-dense single fit back to the frame's contrast: a sphere that only soaks
+up the others' model error explains little of either. The parts are kept only when each
+has the frame's sphere size and contrast and together they explain the
+blob to within twice the pixel noise. Units: px, attenuation.
+"""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+
+from .overlap import fit_group, group_box, render
+
+# the chi-square fall a new sphere must give, as a fraction of its own model
+# energy: a real shadow's is most of it (0.5-1 for overlaps up to 60 %)
+_EARN = 0.15
+_MAX_PARTS = 6
+_ADEQUATE = 4.0   # chi2 per pixel, in units of the pixel noise's variance
+
+
+def peaks_in(m, peaks) -> list:
+    """Candidate peaks (x, y) inside blob ``m``'s extent."""
+    return [p for p in peaks if (p[0] - m.x) ** 2 + (p[1] - m.y) ** 2 < (1.5 * m.radius + 2) ** 2]
+
+
+def split(a: np.ndarray, m, R1: float, mu1, blur: float, noise: float, kappa: float, mask_out, invalid,
+          peaks=()) -> np.ndarray | None:
+    """Spheres (k, 4: x, y, R px, mu per px of chord) that blob ``m`` holds,
+    k >= 2, or None when one sphere explains it as well or the parts are not
+    of the frame's spheres (radius ``R1`` px, contrast ``mu1``, None when
+    unknown). ``mask_out``: (x, y, r) of shadows around it, not fitted."""
+    inside = [p for p in peaks_in(m, peaks)
+              if all((p[0] - ox) ** 2 + (p[1] - oy) ** 2 > (0.8 * orad) ** 2 for ox, oy, orad in mask_out)]
+    ratio = m.mu_px * m.radius**3 / (mu1 * R1**3) if mu1 is not None else 2.0
+    if not 1.4 <= ratio <= max(_MAX_PARTS + 0.6, 3.6 * len(inside)):
+        return None
+    mu0 = mu1 if mu1 is not None else m.mu_px
+    box = group_box(a.shape, np.array([[m.x, m.y, 1.5 * m.radius + 2, 0.0]]), blur)
+    c0, q0, c1, q1 = box
+    reach = 1.5 * m.radius + 2
+    fit = fit_group(a, np.array([[m.x, m.y, m.radius, mu0]]), blur, noise, mask_out, invalid, box=box)
+    if fit is None:
+        return None
+    kappa = max(kappa, 1.0)
+    wgt = _weights(box, mask_out, blur, invalid)
+    disc = _disc(R1)
+    best = None
+    while len(fit[1]) < min(_MAX_PARTS, int(np.ceil(ratio)) + 1):
+        _, sph, _, bg, chi2, n = fit
+        resid = (a[q0:q1, c0:c1] - _model(box, sph, bg, blur)) * wgt
+        score = cv2.filter2D(resid.astype(np.float32), -1, disc, borderType=cv2.BORDER_CONSTANT)
+        iy, ix = np.unravel_index(int(np.argmax(score)), score.shape)
+        new = np.array([[c0 + ix, q0 + iy, R1, mu0]])
+        start = np.vstack([sph, new])
+        start[:, 2] = np.minimum(start[:, 2], 1.3 * R1)
+        starts = [start]
+        if len(sph) == 1:
+            # two shadows nearly on top of each other: the one sphere sits between
+            # them, so the second start is symmetric about it
+            twin = start.copy()
+            twin[0, :2] = 2 * sph[0, :2] - new[0, :2]
+            twin[0, 2:] = R1, mu0
+            starts.append(twin)
+        nxt = None
+        for st in starts:
+            f = fit_group(a, st, blur, noise, mask_out, invalid, box=box)
+            # a part that wandered out of the blob went to fit something else
+            if f is not None and np.all(np.hypot(f[1][:, 0] - m.x, f[1][:, 1] - m.y) <= reach) \
+                    and (nxt is None or f[4] < nxt[4]):
+                nxt = f
+        if nxt is None:
+            break
+        gain = (chi2 - nxt[4]) / kappa
+        local = nxt[1][-1:].copy()
+        local[:, 0] -= c0
+        local[:, 1] -= q0
+        energy = float(np.sum((render((q1 - q0, c1 - c0), local, blur) * wgt / noise) ** 2)) / kappa
+        # (two shadows nearly on top of each other share most of their energy
+        # with the one sphere fitted first; their pair takes most of its misfit)
+        if gain < 4 * np.log(n) + 10 or (gain < _EARN * energy and nxt[4] > 0.25 * chi2
+                                          and not _contrast_restored(sph, nxt[1], mu1, nxt[4] / chi2)):
+            break
+        fit = nxt
+        best = nxt[1]
+    # the parts must explain the blob to within twice the pixel noise (a
+    # rod or a plate's corner is no sum of spheres; on an independent helix
+    # every right split reached chi2/n = 0.9-1.7)
+    if best is None or fit[4] / fit[5] > _ADEQUATE:
+        return None
+    ok_R = (best[:, 2] > 0.6 * R1) & (best[:, 2] < 1.6 * R1)
+    ok_mu = True if mu1 is None else (best[:, 3] > 0.5 * mu1) & (best[:, 3] < 2.0 * mu1)
+    return best if np.all(ok_R & ok_mu) else None
+
+
+def _weights(box, mask_out, blur: float, invalid) -> np.ndarray:
+    """1 on the patch's pixels the group's fit uses, 0 on other shadows and dead pixels."""
+    c0, q0, c1, q1 = box
+    yy, xx = np.mgrid[q0:q1, c0:c1]
+    w = np.ones((q1 - q0, c1 - c0))
+    for ox, oy, orad in mask_out:
+        w[(xx - ox) ** 2 + (yy - oy) ** 2 < (1.15 * orad + 3 * blur + 2) ** 2] = 0
+    if invalid is not None:
+        w[invalid[q0:q1, c0:c1]] = 0
+    return w
+
+
+def _model(box, sph: np.ndarray, bg: np.ndarray, blur: float) -> np.ndarray:
+    """Spheres (frame px) plus the background plane on the patch ``box``."""
+    c0, q0, c1, q1 = box
+    h, w = q1 - q0, c1 - c0
+    local = sph.copy()
+    local[:, 0] -= c0
+    local[:, 1] -= q0
+    yy, xx = np.mgrid[0:h, 0:w]
+    return render((h, w), local, blur) + bg[0] + bg[1] * (xx - w / 2) + bg[2] * (yy - h / 2)
+
+
+def _disc(R: float) -> np.ndarray:
+    """A sphere's chord profile of radius ``R`` px, unit sum (the matched filter)."""
+    r = int(np.ceil(R))
+    yy, xx = np.mgrid[-r:r + 1, -r:r + 1]
+    k = np.sqrt(np.maximum(R * R - xx * xx - yy * yy, 0.0)).astype(np.float32)
+    return k / k.sum()
+
+
+def _contrast_restored(before: np.ndarray, after: np.ndarray, mu1, chi2_ratio: float) -> bool:
+    """A single sphere fitted to two deeply overlapping shadows is too dense
+    (their chords add up): the split is earned when it also takes most of the
+    fit's misfit and brings every part back to the frame's contrast ``mu1``."""
+    if mu1 is None or len(before) != 1 or chi2_ratio > 0.7:
+        return False
+    return bool(before[0, 3] > 1.3 * mu1 and np.all((after[:, 3] > 0.75 * mu1) & (after[:, 3] < 1.3 * mu1)))
