@@ -152,42 +152,25 @@ def fit_profile(a: np.ndarray, x: float, y: float, R: float, mu: float, blur: fl
     chi2_plane = float(np.sum((P @ cp - wv * y_obs) ** 2))
     if chi2_plane - best[0] < 3 * n_knots + 50:
         return None
-    _, phi_s, kappa_s, coef = best
-    mu_s = max(mu * coef[-1], 1e-6)
+    # then the background and the sphere in turn, direction and bend held: the
+    # background is linear given the sphere, the sphere has 4 parameters (one
+    # joint fit with every knot free cost 0.2 s a shadow, 10x this)
+    _, phi, kappa, coef = best
     k = n_knots
-
-    def split(p):
-        return p[0], p[1], p[2:6], p[6:6 + k], p[6 + k]
-
-    def residuals(p):
-        phi, kappa, sp, f, bt = split(p)
-        u, v, s = coords(phi, kappa)
-        i, t = _hat(s, s_lo, k)
-        bg = f[i] * (1 - t) + f[i + 1] * t + bt * v
-        model = render((h, w), sp[None, :], blur).ravel() + bg
-        return np.concatenate([wv * (model - y_obs), reg_w * (D2 @ f)])
-
-    def jacobian(p):
-        phi, kappa, sp, f, bt = split(p)
-        u, v, s = coords(phi, kappa)
-        B, i = basis(s)
-        slope = (f[i + 1] - f[i]) / _KNOT_PX
-        ds_dphi = v * (1 - 2 * kappa * u)
-        _, Js = render((h, w), sp[None, :], blur, jacobian=True)
-        J = np.column_stack([slope * ds_dphi - bt * u, slope * v * v, Js, B, v])
-        reg = np.zeros((len(D2), J.shape[1]))
-        reg[:, 6:6 + k] = reg_w * D2
-        return np.vstack([J * wv[:, None], reg])
-
-    params = [Parameter("phi", phi_s, scale=0.01), Parameter("kappa", kappa_s, scale=1e-3),
-              Parameter("x", cx, scale=0.1), Parameter("y", cy, scale=0.1), Parameter("R", R, scale=0.1),
-              Parameter("mu", mu_s, scale=0.05 * mu_s)]
-    params += [Parameter(f"f{j}", float(coef[j])) for j in range(k)] + [Parameter("bt", float(coef[k]))]
-    try:
-        res = solve(params, residuals, jacobian, max_nfev=60, tol=1e-8, large=True)
-    except (FitError, np.linalg.LinAlgError, ValueError):
-        return None
-    phi, kappa, sp, f, bt = split(res.x)
+    u, v, s = coords(phi, kappa)
+    Bm, _ = basis(s)
+    Bv = np.column_stack([Bm, v])
+    reg = np.column_stack([reg_w * D2, np.zeros((len(D2), 1))])
+    sp = np.array([cx, cy, R, max(mu * coef[-1], 1e-6)])
+    for _ in range(3):
+        A = np.vstack([Bv * wv[:, None], reg])
+        rhs = np.concatenate([wv * (y_obs - render((h, w), sp[None, :], blur).ravel()), np.zeros(len(D2))])
+        AtA = A.T @ A
+        coef = np.linalg.solve(AtA + 1e-9 * np.trace(AtA) / len(AtA) * np.eye(len(AtA)), A.T @ rhs)
+        sp = _sphere((y_obs - Bv @ coef).reshape(h, w), sp, wv, blur)
+        if sp is None:
+            return None
+    f, bt = coef[:k], coef[k]
     if not (sp[2] > 0.5 and sp[3] > 0) or np.hypot(sp[0] - cx, sp[1] - cy) > R or abs(kappa) > 1 / 30:
         return None
     # the background at every pixel of the full-resolution box
@@ -199,3 +182,22 @@ def fit_profile(a: np.ndarray, x: float, y: float, R: float, mu: float, blur: fl
     i, t = _hat(u + kappa * v * v, s_lo, k)
     bg = f[i] * (1 - t) + f[i + 1] * t + bt * v
     return box, bg.astype(np.float32), (sp[0] + 0.5) * fb - 0.5 + c0, (sp[1] + 0.5) * fb - 0.5 + q0
+
+
+def _sphere(img: np.ndarray, sp: np.ndarray, wv: np.ndarray, blur: float):
+    """One sphere (x, y, R, mu) fitted to a background-free patch, from ``sp``; None if it fails."""
+    h, w = img.shape
+    y = img.ravel()
+
+    def residuals(p):
+        return wv * (render((h, w), p[None, :], blur).ravel() - y)
+
+    def jacobian(p):
+        return wv[:, None] * render((h, w), p[None, :], blur, jacobian=True)[1]
+
+    params = [Parameter("x", sp[0], scale=0.1), Parameter("y", sp[1], scale=0.1), Parameter("R", sp[2], scale=0.1),
+              Parameter("mu", sp[3], scale=0.05 * sp[3])]
+    try:
+        return np.asarray(solve(params, residuals, jacobian, max_nfev=20, tol=1e-6, covariance=False).x)
+    except (FitError, np.linalg.LinAlgError, ValueError):
+        return None
