@@ -24,9 +24,9 @@ from ..fit.core import Parameter, solve
 from .overlap import render
 
 _KNOT_PX = 1.0
-# curvatures (1/px) tried before the joint fit: level lines straight, or bent
-# to a circle of radius 40 px either way
-_KAPPAS = (-1 / 80, 0.0, 1 / 80)
+# curvatures (1/px) tried: level lines straight, or bent to circles of radius
+# 25-400 px either way (a tube's wall seen end-on, an intensifier's field)
+_KAPPAS = (-1 / 50, -1 / 100, -1 / 200, -1 / 400, 0.0, 1 / 400, 1 / 200, 1 / 100, 1 / 50)
 
 
 def _hat(s: np.ndarray, s0: float, n: int):
@@ -107,8 +107,8 @@ def fit_profile(a: np.ndarray, x: float, y: float, R: float, mu: float, blur: fl
     phi0 = 0.5 * np.arctan2(2 * Sxy, Sxx - Syy)
     dx, dy = xx - cx, yy - cy
     span = np.hypot(dx, dy).max()
-    s_lo = -span - abs(_KAPPAS[0]) * span**2 - 2
-    n_knots = int(np.ceil((2 * span + 2 * abs(_KAPPAS[0]) * span**2 + 4) / _KNOT_PX)) + 1
+    s_lo = -span - max(map(abs, _KAPPAS)) * span**2 - 2
+    n_knots = int(np.ceil((2 * span + 2 * max(map(abs, _KAPPAS)) * span**2 + 4) / _KNOT_PX)) + 1
     wv = np.sqrt(wgt.ravel()) / noise
     y_obs = roi.ravel()
     n_pix = h * w
@@ -119,57 +119,69 @@ def fit_profile(a: np.ndarray, x: float, y: float, R: float, mu: float, blur: fl
         v = -dx * np.sin(phi) + dy * np.cos(phi)
         return u.ravel(), v.ravel(), (u + kappa * v * v).ravel()
 
-    rows_ = np.arange(n_pix)
-
-    def basis(s):
-        i, t = _hat(s, s_lo, n_knots)
-        B = np.zeros((n_pix, n_knots))
-        B[rows_, i] = 1 - t       # i < n_knots - 1: each row's two knots differ
-        B[rows_, i + 1] = t
-        return B, i
-
-    D2 = (np.eye(n_knots, k=-1) - 2 * np.eye(n_knots) + np.eye(n_knots, k=1))[1:-1]
-
-    # direction and bend first, from the background alone (sphere held at its guess)
-    sph0 = render((h, w), np.array([[cx, cy, R, mu]]), blur).ravel()
-    best = None
-    for dphi in (-0.15, 0.0, 0.15):
-        for kappa in _KAPPAS:
-            u, v, s = coords(phi0 + dphi, kappa)
-            B, _ = basis(s)
-            A = np.vstack([np.column_stack([B, v, sph0]) * wv[:, None],
-                           np.column_stack([reg_w * D2, np.zeros((len(D2), 2))])])
-            rhs = np.concatenate([wv * y_obs, np.zeros(len(D2))])
-            # normal equations: an SVD of this 2000 x 60 matrix cost 40x
-            AtA = A.T @ A
-            coef = np.linalg.solve(AtA + 1e-9 * np.trace(AtA) / len(AtA) * np.eye(len(AtA)), A.T @ rhs)
-            chi2 = float(np.sum((A @ coef - rhs) ** 2))
-            if best is None or chi2 < best[0]:
-                best = (chi2, phi0 + dphi, kappa, coef)
-    # a plane and the sphere alone: the profile must earn its knots
-    P = np.column_stack([np.ones(n_pix), dx.ravel(), dy.ravel(), sph0]) * wv[:, None]
-    cp, *_ = np.linalg.lstsq(P, wv * y_obs, rcond=None)
-    chi2_plane = float(np.sum((P @ cp - wv * y_obs) ** 2))
-    if chi2_plane - best[0] < 3 * n_knots + 50:
-        return None
-    # then the background and the sphere in turn, direction and bend held: the
-    # background is linear given the sphere, the sphere has 4 parameters (one
-    # joint fit with every knot free cost 0.2 s a shadow, 10x this)
-    _, phi, kappa, coef = best
     k = n_knots
-    u, v, s = coords(phi, kappa)
-    Bm, _ = basis(s)
-    Bv = np.column_stack([Bm, v])
-    reg = np.column_stack([reg_w * D2, np.zeros((len(D2), 1))])
-    sp = np.array([cx, cy, R, max(mu * coef[-1], 1e-6)])
-    for _ in range(3):
-        A = np.vstack([Bv * wv[:, None], reg])
-        rhs = np.concatenate([wv * (y_obs - render((h, w), sp[None, :], blur).ravel()), np.zeros(len(D2))])
-        AtA = A.T @ A
-        coef = np.linalg.solve(AtA + 1e-9 * np.trace(AtA) / len(AtA) * np.eye(len(AtA)), A.T @ rhs)
-        sp = _sphere((y_obs - Bv @ coef).reshape(h, w), sp, wv, blur)
-        if sp is None:
-            return None
+    D2 = (np.eye(k, k=-1) - 2 * np.eye(k) + np.eye(k, k=1))[1:-1]
+    reg = reg_w**2 * (D2.T @ D2)
+    w2 = wv * wv
+
+    def profile(phi, kappa, extra, target):
+        """Knot values and the ``extra`` columns' coefficients that best
+        give ``target``, with chi-square: normal equations built from the
+        basis's two non-zeros per pixel (a dense 2000 x 60 product cost 30x)."""
+        _, v, s = coords(phi, kappa)
+        i, t = _hat(s, s_lo, k)
+        X = np.column_stack([v] + extra)
+        m = X.shape[1]
+        a0, a1 = w2 * (1 - t), w2 * t
+        N = np.zeros((k + m, k + m))
+        N[:k, :k] = reg
+        d = np.bincount(i, a0 * (1 - t), k) + np.bincount(i + 1, a1 * t, k)
+        off = np.bincount(i, a0 * t, k)[:k - 1]
+        N[np.arange(k), np.arange(k)] += d
+        N[np.arange(k - 1), np.arange(1, k)] += off
+        N[np.arange(1, k), np.arange(k - 1)] += off
+        BX = np.stack([np.bincount(i, a0 * X[:, c], k) + np.bincount(i + 1, a1 * X[:, c], k) for c in range(m)], 1)
+        N[:k, k:], N[k:, :k] = BX, BX.T
+        N[k:, k:] = (X * w2[:, None]).T @ X
+        r = np.concatenate([np.bincount(i, a0 * target, k) + np.bincount(i + 1, a1 * target, k),
+                            (X * w2[:, None]).T @ target])
+        coef = np.linalg.solve(N + 1e-9 * np.trace(N) / len(N) * np.eye(len(N)), r)
+        model = coef[:k][i] * (1 - t) + coef[:k][i + 1] * t + X @ coef[k:]
+        chi2 = float(np.sum(w2 * (model - target) ** 2) + coef[:k] @ reg @ coef[:k])
+        return coef, chi2, model
+
+    # direction and bend first, from the background alone (sphere held at its
+    # guess): the direction at straight level lines, then the bend (a tube's
+    # wall end-on: 1/(2 x its radius)), then the direction again; then the
+    # background and the sphere in turn, direction and bend held (the
+    # background is linear given the sphere, the sphere has 4 parameters: one
+    # joint fit with every knot free cost 0.2 s a shadow, 20x this); then the
+    # direction and bend again about the sphere moved, and once more in turn
+    sp = np.array([cx, cy, R, mu])
+    for rnd in range(2):
+        sph0 = render((h, w), sp[None, :], blur).ravel()
+
+        def score(phi_, kappa_):
+            return profile(phi_, kappa_, [sph0], y_obs)[1]
+
+        if rnd == 0:
+            phi = min(phi0 + np.array([-0.15, -0.075, 0.0, 0.075, 0.15]), key=lambda p: score(p, 0.0))
+        kappa = min(_KAPPAS, key=lambda q: score(phi, q))
+        phi = min(phi + np.array([-0.04, 0.0, 0.04]), key=lambda p: score(p, kappa))
+        coef, chi2_best, _ = profile(phi, kappa, [sph0], y_obs)
+        if rnd == 0:
+            # a plane and the sphere alone: the profile must earn its knots
+            P = np.column_stack([np.ones(n_pix), dx.ravel(), dy.ravel(), sph0]) * wv[:, None]
+            cp, *_ = np.linalg.lstsq(P, wv * y_obs, rcond=None)
+            chi2_plane = float(np.sum((P @ cp - wv * y_obs) ** 2))
+            if chi2_plane - chi2_best < 3 * n_knots + 50:
+                return None
+        sp[3] = max(sp[3] * coef[-1], 1e-6)
+        for _ in range(2):
+            coef, _, bgv = profile(phi, kappa, [], y_obs - render((h, w), sp[None, :], blur).ravel())
+            sp = _sphere((y_obs - bgv).reshape(h, w), sp, wv, blur)
+            if sp is None:
+                return None
     f, bt = coef[:k], coef[k]
     if not (sp[2] > 0.5 and sp[3] > 0) or np.hypot(sp[0] - cx, sp[1] - cy) > R or abs(kappa) > 1 / 30:
         return None

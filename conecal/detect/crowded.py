@@ -182,6 +182,15 @@ def measure_crowded(a: np.ndarray, kept: list[Blob], merged: list[Blob], opt: De
             # the joint fit treats pixels as independent: correlated noise scales it
             s_fit = float(min(np.hypot(*np.minimum(np.abs(sig[n_i, :2]), 1e6)) / np.sqrt(2) * np.sqrt(opt.noise_kappa), 1e6))   # px; an
             # undetermined joint fit's sigma can be 1e200, whose square overflows
+            if b is not None and np.hypot(b.x - x_fit, b.y - y_fit) <= 0.5 * sph[n_i, 2]:
+                # an edge's background beside it (its neighbours' models removed):
+                # the joint fit's plane did not follow it, so its centre is no check
+                b2 = _beside_edge(work, b, opt, noise, invalid, others)
+                if b2 is not b:
+                    b2.flags = sorted(set(b2.flags) | {"overlap"})
+                    out[i] = b2
+                    new.discard(i)
+                    continue
             if b is None or np.hypot(b.x - x_fit, b.y - y_fit) > 0.5 * sph[n_i, 2]:
                 # the centroid cannot be had: the joint model's centre stands
                 if not np.isfinite(s_fit) or s_fit > 0.5:
