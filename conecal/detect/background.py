@@ -72,33 +72,45 @@ def structured(a: np.ndarray, x: float, y: float, R: float, blur: float, noise: 
     return float(np.std(roi[m] - A @ c)) > 1.3 * noise
 
 
-def fit_profile(a: np.ndarray, x: float, y: float, R: float, mu: float, blur: float, noise: float,
-                invalid=None, others=()):
-    """The background across an edge beside the sphere shadow at (x, y),
-    radius R px: returns (box (c0, q0, c1, q1), background image over the
-    box without the sphere, fitted centre x, y) or None when the patch holds
-    no structure beyond a plane (the profile's gain in chi-square under
-    3 per knot + 50) or the fit fails. ``others``: (x, y, r) of shadows kept out."""
-    box, roi_full, wgt, xx, yy = _patch(a, x, y, R, blur, others, invalid)
+def fit_profile(a: np.ndarray, spheres: np.ndarray, blur: float, noise: float, invalid=None, others=()):
+    """The background across an edge beside the sphere shadows ``spheres``
+    (k, 4: x, y, R px, mu per px of chord; one, or a touching group):
+    returns (box (c0, q0, c1, q1), background image over the box without
+    the spheres, the spheres fitted on it (k, 4)) or None when the patch
+    holds no structure beyond a plane (the profile's gain in chi-square
+    under 3 per knot + 50) or the fit fails. ``others``: (x, y, r) of shadows
+    kept out."""
+    spheres = np.asarray(spheres, float).reshape(-1, 4)
+    x, y = spheres[:, 0].mean(), spheres[:, 1].mean()
+    R_ext = float(np.max(np.hypot(spheres[:, 0] - x, spheres[:, 1] - y) + spheres[:, 2]))
+    R = float(np.median(spheres[:, 2]))
+    box, roi_full, wgt, xx, yy = _patch(a, x, y, R_ext, blur, others, invalid)
     c0, q0, c1, q1 = box
     # large shadows: fitted on pixels binned fb x fb (the cost grows with the
     # patch's area and knots), in binned units until the background is made
     fb = max(1, int(R // 6))
-    cx_full, cy_full = x - c0, y - q0
+    loc = spheres.copy()
+    loc[:, 0] -= c0
+    loc[:, 1] -= q0
     if fb > 1:
         hb, wb = roi_full.shape[0] // fb, roi_full.shape[1] // fb
         roi = roi_full[:hb * fb, :wb * fb].reshape(hb, fb, wb, fb).mean(axis=(1, 3))
         wgt = wgt[:hb * fb, :wb * fb].reshape(hb, fb, wb, fb).min(axis=(1, 3))
         yy, xx = np.mgrid[0:hb, 0:wb].astype(float)
-        R, mu, noise = R / fb, mu * fb, noise / fb
+        loc[:, :2] = (loc[:, :2] + 0.5) / fb - 0.5
+        loc[:, 2] /= fb
+        loc[:, 3] *= fb
+        R, R_ext, noise = R / fb, R_ext / fb, noise / fb
         blur = np.sqrt(blur**2 + (fb * fb - 1) / 12.0) / fb
     else:
         roi = roi_full
     h, w = roi.shape
     if h < 8 or w < 8:
         return None
-    cx, cy = (cx_full + 0.5) / fb - 0.5, (cy_full + 0.5) / fb - 0.5
-    outside = ((xx - cx) ** 2 + (yy - cy) ** 2 > (1.2 * R + 3 * blur + 2) ** 2) & (wgt > 0)
+    cx, cy = loc[:, 0].mean(), loc[:, 1].mean()
+    outside = wgt > 0
+    for sx, sy, sR, _ in loc:
+        outside &= (xx - sx) ** 2 + (yy - sy) ** 2 > (1.2 * sR + 3 * blur + 2) ** 2
     if outside.sum() < 40:
         return None
     gx = cv2.Sobel(roi.astype(np.float32), cv2.CV_32F, 1, 0, ksize=3)
@@ -157,16 +169,20 @@ def fit_profile(a: np.ndarray, x: float, y: float, R: float, mu: float, blur: fl
     # background is linear given the sphere, the sphere has 4 parameters: one
     # joint fit with every knot free cost 0.2 s a shadow, 20x this); then the
     # direction and bend again about the sphere moved, and once more in turn
-    sp = np.array([cx, cy, R, mu])
+    sp = loc.copy()
     for rnd in range(2):
-        sph0 = render((h, w), sp[None, :], blur).ravel()
+        sph0 = render((h, w), sp, blur).ravel()
 
         def score(phi_, kappa_):
             return profile(phi_, kappa_, [sph0], y_obs)[1]
 
         if rnd == 0:
             phi = min(phi0 + np.array([-0.15, -0.075, 0.0, 0.075, 0.15]), key=lambda p: score(p, 0.0))
-        kappa = min(_KAPPAS, key=lambda q: score(phi, q))
+        if rnd == 0:
+            kappa = min(_KAPPAS, key=lambda q: score(phi, q))
+        else:   # the sphere moved little: the bend's neighbours only
+            j = _KAPPAS.index(kappa)
+            kappa = min(_KAPPAS[max(j - 1, 0):j + 2], key=lambda q: score(phi, q))
         phi = min(phi + np.array([-0.04, 0.0, 0.04]), key=lambda p: score(p, kappa))
         coef, chi2_best, _ = profile(phi, kappa, [sph0], y_obs)
         if rnd == 0:
@@ -176,14 +192,15 @@ def fit_profile(a: np.ndarray, x: float, y: float, R: float, mu: float, blur: fl
             chi2_plane = float(np.sum((P @ cp - wv * y_obs) ** 2))
             if chi2_plane - chi2_best < 3 * n_knots + 50:
                 return None
-        sp[3] = max(sp[3] * coef[-1], 1e-6)
+        sp[:, 3] = np.maximum(sp[:, 3] * coef[-1], 1e-6)
         for _ in range(2):
-            coef, _, bgv = profile(phi, kappa, [], y_obs - render((h, w), sp[None, :], blur).ravel())
-            sp = _sphere((y_obs - bgv).reshape(h, w), sp, wv, blur)
+            coef, _, bgv = profile(phi, kappa, [], y_obs - render((h, w), sp, blur).ravel())
+            sp = _spheres((y_obs - bgv).reshape(h, w), sp, wv, blur)
             if sp is None:
                 return None
     f, bt = coef[:k], coef[k]
-    if not (sp[2] > 0.5 and sp[3] > 0) or np.hypot(sp[0] - cx, sp[1] - cy) > R or abs(kappa) > 1 / 30:
+    if not (np.all(sp[:, 2] > 0.5) and np.all(sp[:, 3] > 0)) or abs(kappa) > 1 / 30 \
+            or np.any(np.hypot(sp[:, 0] - loc[:, 0], sp[:, 1] - loc[:, 1]) > loc[:, 2]):
         return None
     # the background at every pixel of the full-resolution box
     hf, wf = roi_full.shape
@@ -193,23 +210,32 @@ def fit_profile(a: np.ndarray, x: float, y: float, R: float, mu: float, blur: fl
     v = -dxf * np.sin(phi) + dyf * np.cos(phi)
     i, t = _hat(u + kappa * v * v, s_lo, k)
     bg = f[i] * (1 - t) + f[i + 1] * t + bt * v
-    return box, bg.astype(np.float32), (sp[0] + 0.5) * fb - 0.5 + c0, (sp[1] + 0.5) * fb - 0.5 + q0
+    out = sp.copy()
+    out[:, :2] = (sp[:, :2] + 0.5) * fb - 0.5 + np.array([c0, q0])
+    out[:, 2] *= fb
+    out[:, 3] /= fb
+    return box, bg.astype(np.float32), out
 
 
-def _sphere(img: np.ndarray, sp: np.ndarray, wv: np.ndarray, blur: float):
-    """One sphere (x, y, R, mu) fitted to a background-free patch, from ``sp``; None if it fails."""
+def _spheres(img: np.ndarray, sp: np.ndarray, wv: np.ndarray, blur: float):
+    """Spheres (k, 4: x, y, R, mu) fitted to a background-free patch, from ``sp``; None if it fails."""
     h, w = img.shape
     y = img.ravel()
+    k = len(sp)
 
     def residuals(p):
-        return wv * (render((h, w), p[None, :], blur).ravel() - y)
+        return wv * (render((h, w), p.reshape(k, 4), blur).ravel() - y)
 
     def jacobian(p):
-        return wv[:, None] * render((h, w), p[None, :], blur, jacobian=True)[1]
+        return wv[:, None] * render((h, w), p.reshape(k, 4), blur, jacobian=True)[1]
 
-    params = [Parameter("x", sp[0], scale=0.1), Parameter("y", sp[1], scale=0.1), Parameter("R", sp[2], scale=0.1),
-              Parameter("mu", sp[3], scale=0.05 * sp[3])]
+    params = []
+    for j, (x, yv, R, mu) in enumerate(sp):
+        params += [Parameter(f"x{j}", x, scale=0.1), Parameter(f"y{j}", yv, scale=0.1),
+                   Parameter(f"R{j}", R, scale=0.1), Parameter(f"mu{j}", mu, scale=0.05 * mu)]
     try:
-        return np.asarray(solve(params, residuals, jacobian, max_nfev=20, tol=1e-6, covariance=False).x)
+        # normal equations (an SVD of J per step cost 5x)
+        res = solve(params, residuals, jacobian, max_nfev=20, tol=1e-6, covariance=False, large=True)
     except (FitError, np.linalg.LinAlgError, ValueError):
         return None
+    return np.asarray(res.x).reshape(k, 4)

@@ -50,7 +50,8 @@ def render(shape, spheres: np.ndarray, blur: float, jacobian: bool = False):
         s = np.sqrt(np.where(inside, q, 0.0))
 
         def down(f):
-            f = f.reshape(bh, _SS, bw, _SS).sum(axis=(1, 3)).astype(np.float32) * (1.0 / _SS**2)
+            # the mean over each pixel's samples (area resampling by a whole factor)
+            f = cv2.resize(f.astype(np.float32), (bw, bh), interpolation=cv2.INTER_AREA)
             return cv2.GaussianBlur(f, (0, 0), blur, borderType=cv2.BORDER_REPLICATE) if blur > 0.05 else f
 
         model[q0:q1, c0:c1] += down(2 * mu * s)
