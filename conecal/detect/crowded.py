@@ -161,8 +161,10 @@ def measure_crowded(a: np.ndarray, kept: list[Blob], merged: list[Blob], opt: De
         # an edge's background across a small group (a holder's wall), which the
         # joint fit's plane cannot follow, removed first (over a long chain one
         # direction of level lines does not hold, and the fit costs seconds)
-        if len(g) <= 5 and ext <= 5 * np.max(s0[:, 2]) and structured(a, gx, gy, ext, opt.blur_px, noise,
-                                                                       invalid, others):
+        # (only where a member measured alone was disturbed: in a plain crowd the
+        # neighbours' own misfit reads as structure and the profile takes it up)
+        if len(g) <= 5 and ext <= 5 * np.max(s0[:, 2]) and any("clutter" in m.flags for m in members) \
+                and structured(a, gx, gy, ext, opt.blur_px, noise, invalid, others):
             prof = fit_profile(a, s0, opt.blur_px, noise, invalid, others)
             if prof is not None:
                 (pc0, pq0, pc1, pq1), bg, s0 = prof
