@@ -100,8 +100,11 @@ def main():
         tot_n = sum(v[0] for v in acc.values())
         tot_m = sum(len(v[1]) for v in acc.values())
         print(f"| {scale:.2f} | all | {tot_n} | {tot_m} ({100 * tot_m / tot_n:.1f} %) | | {false} | |")
-        print("pull std per flag class: " + ", ".join(
-            f"{k} {np.std(v):.2f} (n={len(v) // 2})" for k, v in sorted(pulls.items())), flush=True)
+        # std, then the robust std (1.4826 MAD) and how many |pull| > 5 (a
+        # centre off by more than its sigma can say: a wrong "ok")
+        print("pull std / robust / >5 per flag class: " + ", ".join(
+            f"{k} {np.std(v):.2f} / {1.4826 * np.median(np.abs(np.array(v) - np.median(v))):.2f} / "
+            f"{int(np.sum(np.abs(v) > 5))} (n={len(v) // 2})" for k, v in sorted(pulls.items())), flush=True)
 
 
 if __name__ == "__main__":

@@ -196,7 +196,7 @@ def measure_crowded(a: np.ndarray, kept: list[Blob], merged: list[Blob], opt: De
             # the joint fit treats pixels as independent: correlated noise scales it
             s_fit = float(min(np.hypot(*np.minimum(np.abs(sig[n_i, :2]), 1e6)) / np.sqrt(2) * np.sqrt(opt.noise_kappa), 1e6))   # px; an
             # undetermined joint fit's sigma can be 1e200, whose square overflows
-            if b is not None and np.hypot(b.x - x_fit, b.y - y_fit) <= 0.5 * sph[n_i, 2]:
+            if b is not None and "clutter" in blobs[i].flags and np.hypot(b.x - x_fit, b.y - y_fit) <= 0.5 * sph[n_i, 2]:
                 # an edge's background beside it (its neighbours' models removed):
                 # the joint fit's plane did not follow it, so its centre is no check
                 b2 = _beside_edge(work, b, opt, noise, invalid, others)
