@@ -71,7 +71,9 @@ def structured(a: np.ndarray, x: float, y: float, R: float, blur: float, noise: 
         return False
     X, Y = dx[m] / R, dy[m] / R
     A = np.column_stack([np.ones_like(X), X, Y, X * X, X * Y, Y * Y])
-    c, *_ = np.linalg.lstsq(A, roi[m], rcond=None)
+    # normal equations of 6 unknowns (an lstsq here woke BLAS's threads in every worker)
+    N = A.T @ A
+    c = np.linalg.solve(N + 1e-12 * np.trace(N) * np.eye(6), A.T @ roi[m])
     return float(np.std(roi[m] - A @ c)) > 1.3 * noise
 
 
