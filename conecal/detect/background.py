@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import cv2
 import numpy as np
+from scipy.linalg import solveh_banded
 
 from ..errors import FitError
 from ..fit.core import Parameter, solve
@@ -141,28 +142,36 @@ def fit_profile(a: np.ndarray, spheres: np.ndarray, blur: float, noise: float, i
     reg = reg_w**2 * (D2.T @ D2)
     w2 = wv * wv
 
+    bands = [np.diag(reg, q) for q in (0, 1, 2)]
+
     def profile(phi, kappa, extra, target):
         """Knot values and the ``extra`` columns' coefficients that best
         give ``target``, with chi-square: normal equations built from the
-        basis's two non-zeros per pixel (a dense 2000 x 60 product cost 30x)."""
+        basis's two non-zeros per pixel (a dense 2000 x 60 product cost 30x),
+        the knots' block (five bands) solved banded and the few extra
+        columns by their Schur complement."""
         _, v, s = coords(phi, kappa)
         i, t = _hat(s, s_lo, k)
         X = np.column_stack([v] + extra)
         m = X.shape[1]
         a0, a1 = w2 * (1 - t), w2 * t
-        N = np.zeros((k + m, k + m))
-        N[:k, :k] = reg
         d = np.bincount(i, a0 * (1 - t), k) + np.bincount(i + 1, a1 * t, k)
         off = np.bincount(i, a0 * t, k)[:k - 1]
-        N[np.arange(k), np.arange(k)] += d
-        N[np.arange(k - 1), np.arange(1, k)] += off
-        N[np.arange(1, k), np.arange(k - 1)] += off
         BX = np.stack([np.bincount(i, a0 * X[:, c], k) + np.bincount(i + 1, a1 * X[:, c], k) for c in range(m)], 1)
-        N[:k, k:], N[k:, :k] = BX, BX.T
-        N[k:, k:] = (X * w2[:, None]).T @ X
-        r = np.concatenate([np.bincount(i, a0 * target, k) + np.bincount(i + 1, a1 * target, k),
-                            (X * w2[:, None]).T @ target])
-        coef = np.linalg.solve(N + 1e-9 * np.trace(N) / len(N) * np.eye(len(N)), r)
+        C = (X * w2[:, None]).T @ X
+        rB = np.bincount(i, a0 * target, k) + np.bincount(i + 1, a1 * target, k)
+        rX = (X * w2[:, None]).T @ target
+        eps = 1e-9 * (d.sum() + bands[0].sum() + np.trace(C)) / (k + m)
+        ab = np.zeros((3, k))
+        ab[2] = bands[0] + d + eps
+        ab[1, 1:] = bands[1] + off
+        ab[0, 2:] = bands[2]
+        try:
+            Z = solveh_banded(ab, np.column_stack([BX, rB]))
+            cx_ = np.linalg.solve(C + eps * np.eye(m) - BX.T @ Z[:, :m], rX - BX.T @ Z[:, m])
+        except np.linalg.LinAlgError:
+            return np.zeros(k + m), np.inf, np.zeros_like(target)
+        coef = np.concatenate([Z[:, m] - Z[:, :m] @ cx_, cx_])
         model = coef[:k][i] * (1 - t) + coef[:k][i + 1] * t + X @ coef[k:]
         chi2 = float(np.sum(w2 * (model - target) ** 2) + coef[:k] @ reg @ coef[:k])
         return coef, chi2, model
@@ -200,7 +209,7 @@ def fit_profile(a: np.ndarray, spheres: np.ndarray, blur: float, noise: float, i
         sp[:, 3] = np.maximum(sp[:, 3] * coef[-1], 1e-6)
         for _ in range(2):
             coef, _, bgv = profile(phi, kappa, [], y_obs - render((h, w), sp, blur).ravel())
-            sp = _spheres((y_obs - bgv).reshape(h, w), sp, wv, blur)
+            sp = _spheres((y_obs - bgv).reshape(h, w), sp, wv.reshape(h, w), blur)
             if sp is None:
                 return None
     f, bt = coef[:k], coef[k]
@@ -223,7 +232,17 @@ def fit_profile(a: np.ndarray, spheres: np.ndarray, blur: float, noise: float, i
 
 
 def _spheres(img: np.ndarray, sp: np.ndarray, wv: np.ndarray, blur: float):
-    """Spheres (k, 4: x, y, R, mu) fitted to a background-free patch, from ``sp``; None if it fails."""
+    """Spheres (k, 4: x, y, R, mu) fitted to a background-free patch, from
+    ``sp``; None if it fails. ``wv``: per-pixel weights (patch-shaped). Only
+    the box the spheres' shadows reach is used: elsewhere the residual does
+    not depend on them."""
+    m = 4 * blur + 4
+    lo = np.floor(np.min(sp[:, :2] - sp[:, 2:3], axis=0) - m).astype(int)
+    hi = np.ceil(np.max(sp[:, :2] + sp[:, 2:3], axis=0) + m).astype(int) + 1
+    c0, q0 = max(lo[0], 0), max(lo[1], 0)
+    c1, q1 = min(hi[0], img.shape[1]), min(hi[1], img.shape[0])
+    img, wv = img[q0:q1, c0:c1], wv[q0:q1, c0:c1].ravel()
+    sp = sp - np.array([c0, q0, 0.0, 0.0])
     h, w = img.shape
     y = img.ravel()
     k = len(sp)
@@ -243,4 +262,4 @@ def _spheres(img: np.ndarray, sp: np.ndarray, wv: np.ndarray, blur: float):
         res = solve(params, residuals, jacobian, max_nfev=20, tol=1e-6, covariance=False, large=True)
     except (FitError, np.linalg.LinAlgError, ValueError):
         return None
-    return np.asarray(res.x).reshape(k, 4)
+    return np.asarray(res.x).reshape(k, 4) + np.array([c0, q0, 0.0, 0.0])
