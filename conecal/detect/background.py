@@ -22,7 +22,7 @@ from scipy.linalg import solveh_banded
 
 from ..errors import FitError
 from ..fit.core import Parameter, solve
-from .overlap import render
+from .overlap import group_box, mask_weights, render
 
 _KNOT_PX = 1.0
 # curvatures (1/px) tried: level lines straight, or bent to circles of radius
@@ -48,12 +48,7 @@ def _patch(a, x, y, R, blur, others, invalid):
     roi = a[q0:q1, c0:c1].astype(np.float64)
     h, w = roi.shape
     yy, xx = np.mgrid[0:h, 0:w].astype(float)
-    wgt = np.ones((h, w))
-    for ox, oy, orad in others:
-        wgt[(xx - (ox - c0)) ** 2 + (yy - (oy - q0)) ** 2 < (1.15 * orad + 3 * blur + 2) ** 2] = 0
-    if invalid is not None:
-        wgt[invalid[q0:q1, c0:c1]] = 0
-    return (c0, q0, c1, q1), roi, wgt, xx, yy
+    return (c0, q0, c1, q1), roi, mask_weights((c0, q0, c1, q1), others, blur, invalid), xx, yy
 
 
 def structured(a: np.ndarray, x: float, y: float, R: float, blur: float, noise: float, invalid=None,
@@ -187,18 +182,18 @@ def fit_profile(a: np.ndarray, spheres: np.ndarray, blur: float, noise: float, i
     for rnd in range(2):
         sph0 = render((h, w), sp, blur).ravel()
 
-        def score(phi_, kappa_):
-            return profile(phi_, kappa_, [sph0], y_obs)[1]
+        def best(pairs):
+            """The (phi, kappa) of ``pairs`` whose profile fits best, and its (coef, chi2)."""
+            fits = [(pk, profile(*pk, [sph0], y_obs)[:2]) for pk in pairs]
+            return min(fits, key=lambda f: f[1][1])
 
         if rnd == 0:
-            phi = min(phi0 + np.array([-0.15, -0.075, 0.0, 0.075, 0.15]), key=lambda p: score(p, 0.0))
-        if rnd == 0:
-            kappa = min(_KAPPAS, key=lambda q: score(phi, q))
+            (phi, _), _ = best([(p, 0.0) for p in phi0 + np.array([-0.15, -0.075, 0.0, 0.075, 0.15])])
+            (_, kappa), _ = best([(phi, q) for q in _KAPPAS])
         else:   # the sphere moved little: the bend's neighbours only
             j = _KAPPAS.index(kappa)
-            kappa = min(_KAPPAS[max(j - 1, 0):j + 2], key=lambda q: score(phi, q))
-        phi = min(phi + np.array([-0.04, 0.0, 0.04]), key=lambda p: score(p, kappa))
-        coef, chi2_best, _ = profile(phi, kappa, [sph0], y_obs)
+            (_, kappa), _ = best([(phi, q) for q in _KAPPAS[max(j - 1, 0):j + 2]])
+        (phi, kappa), (coef, chi2_best) = best([(p, kappa) for p in phi + np.array([-0.04, 0.0, 0.04])])
         if rnd == 0:
             # a plane and the sphere alone: the profile must earn its knots
             P = np.column_stack([np.ones(n_pix), dx.ravel(), dy.ravel(), sph0]) * wv[:, None]
@@ -236,11 +231,7 @@ def _spheres(img: np.ndarray, sp: np.ndarray, wv: np.ndarray, blur: float):
     ``sp``; None if it fails. ``wv``: per-pixel weights (patch-shaped). Only
     the box the spheres' shadows reach is used: elsewhere the residual does
     not depend on them."""
-    m = 4 * blur + 4
-    lo = np.floor(np.min(sp[:, :2] - sp[:, 2:3], axis=0) - m).astype(int)
-    hi = np.ceil(np.max(sp[:, :2] + sp[:, 2:3], axis=0) + m).astype(int) + 1
-    c0, q0 = max(lo[0], 0), max(lo[1], 0)
-    c1, q1 = min(hi[0], img.shape[1]), min(hi[1], img.shape[0])
+    c0, q0, c1, q1 = group_box(img.shape, sp, blur, pad=4 * blur + 4)
     img, wv = img[q0:q1, c0:c1], wv[q0:q1, c0:c1].ravel()
     sp = sp - np.array([c0, q0, 0.0, 0.0])
     h, w = img.shape

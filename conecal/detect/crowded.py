@@ -2,9 +2,9 @@
 
 :func:`detect_frame` measures every shadow alone (:mod:`.frame`), then
 groups the shadows whose centroid windows meet and measures each again on
-the frame with its neighbours' fitted models removed (:mod:`.overlap`), and
-splits a blob rejected as elongated into the 2 or 3 spheres whose
-attenuation it holds, when a joint fit says so. A shadow flagged clutter is
+the frame with its neighbours' fitted models removed (:mod:`.overlap`),
+splits a blob that holds several shadows into them (:mod:`.split`), and
+measures candidate peaks a neighbour spoilt together with it. A shadow flagged clutter is
 measured again with the background across an edge beside it (a plate's
 step, a holder's wall: :mod:`.background`) fitted and removed. Units: px,
 attenuation.
@@ -18,7 +18,7 @@ import numpy as np
 
 from .frame import Blob, DetectOptions, detect_blobs, refine
 from .background import fit_profile, structured
-from .overlap import fit_group, groups_of, render
+from .overlap import fit_group, groups_of, render_box
 from .split import peaks_in, split
 
 # the cone-beam shadow's centroid and the model circle's centre differ by
@@ -27,7 +27,7 @@ _CONE_OFFSET_PX = 0.03
 # a lone sphere's shadow: anisotropy 1.03 median, 1.10 at the 95th percentile
 # on an independent helix; two shadows overlapping by 60-90 % read 1.08-1.5
 _DEEP_ANISOTROPY = 1.06
-# ... and its contrast per px of chord at most 1.3x the frame's median; two
+# ... and its contrast per px of chord under 1.35x the frame's median; two
 # shadows nearly on top of each other look like one sphere of up to 2x
 _DEEP_DENSITY = 1.35
 
@@ -96,7 +96,6 @@ def _unearned(a, sph: np.ndarray, idx: list, box, opt: DetectOptions, noise: flo
     energy (a genuine shadow's is most of it; a phantom made of its
     neighbours' misfit explains little the neighbours do not). None when
     every one earns its place."""
-    c0, q0, c1, q1 = box
     worst, worst_r = None, np.inf
     for n_i in idx:
         R, mu = sph[n_i, 2], sph[n_i, 3]
@@ -104,10 +103,7 @@ def _unearned(a, sph: np.ndarray, idx: list, box, opt: DetectOptions, noise: flo
             return n_i
         rest = np.delete(sph, n_i, axis=0)
         fit0 = fit_group(a, rest, opt.blur_px, noise, others, invalid, box=box)
-        local = sph[n_i:n_i + 1].copy()
-        local[:, 0] -= c0
-        local[:, 1] -= q0
-        energy = float(np.sum((render((q1 - q0, c1 - c0), local, opt.blur_px) / noise) ** 2))
+        energy = float(np.sum((render_box(box, sph[n_i:n_i + 1], opt.blur_px) / noise) ** 2))
         gain = (fit0[4] - chi2) if fit0 is not None else np.inf
         r = gain / max(energy, 1e-30)
         if r < worst_r:
@@ -183,10 +179,7 @@ def measure_crowded(a: np.ndarray, kept: list[Blob], merged: list[Blob], opt: De
         if fit is None:
             continue
         (c0, q0, c1, q1), sph, sig, _, _, _ = fit
-        local = sph.copy()
-        local[:, 0] -= c0
-        local[:, 1] -= q0
-        models = [render((q1 - q0, c1 - c0), local[i:i + 1], opt.blur_px) for i in range(len(g))]
+        models = [render_box(fit[0], sph[i:i + 1], opt.blur_px) for i in range(len(g))]
         total = np.sum(models, axis=0)
         work = ag.copy()
         for n_i, i in enumerate(g):
@@ -194,8 +187,9 @@ def measure_crowded(a: np.ndarray, kept: list[Blob], merged: list[Blob], opt: De
             b = refine(work, sph[n_i, 0], sph[n_i, 1], sph[n_i, 2], opt, others, noise, invalid)
             x_fit, y_fit = sph[n_i, :2]
             # the joint fit treats pixels as independent: correlated noise scales it
-            s_fit = float(min(np.hypot(*np.minimum(np.abs(sig[n_i, :2]), 1e6)) / np.sqrt(2) * np.sqrt(opt.noise_kappa), 1e6))   # px; an
-            # undetermined joint fit's sigma can be 1e200, whose square overflows
+            # px; an undetermined joint fit's sigma can be 1e200, whose square overflows
+            s_fit = float(min(np.hypot(*np.minimum(np.abs(sig[n_i, :2]), 1e6)) / np.sqrt(2) * np.sqrt(opt.noise_kappa),
+                              1e6))
             if b is not None and "clutter" in blobs[i].flags and np.hypot(b.x - x_fit, b.y - y_fit) <= 0.5 * sph[n_i, 2]:
                 # an edge's background beside it (its neighbours' models removed):
                 # the joint fit's plane did not follow it, so its centre is no check

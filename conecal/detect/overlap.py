@@ -66,10 +66,33 @@ def render(shape, spheres: np.ndarray, blur: float, jacobian: bool = False):
     return model, J.reshape(h * w, -1)
 
 
-def group_box(shape, spheres: np.ndarray, blur: float) -> tuple[int, int, int, int]:
-    """The patch (c0, q0, c1, q1) a group of spheres (k, 4) is fitted on."""
+def render_box(box, spheres: np.ndarray, blur: float) -> np.ndarray:
+    """:func:`render` of ``spheres`` (k, 4) given in frame px on the frame's
+    patch ``box`` (c0, q0, c1, q1)."""
+    c0, q0, c1, q1 = box
+    local = np.asarray(spheres, float).reshape(-1, 4) - np.array([c0, q0, 0.0, 0.0])
+    return render((q1 - q0, c1 - c0), local, blur)
+
+
+def mask_weights(box, mask_out, blur: float, invalid=None) -> np.ndarray:
+    """Weights over the frame's patch ``box``: 1, and 0 within reach of the
+    shadows ``mask_out`` ((x, y, r) frame px: other markers are not this
+    fit's background) and on ``invalid`` pixels."""
+    c0, q0, c1, q1 = box
+    yy, xx = np.mgrid[q0:q1, c0:c1]
+    w = np.ones((q1 - q0, c1 - c0))
+    for ox, oy, orad in mask_out:
+        w[(xx - ox) ** 2 + (yy - oy) ** 2 < (1.15 * orad + 3 * blur + 2) ** 2] = 0
+    if invalid is not None:
+        w[invalid[q0:q1, c0:c1]] = 0
+    return w
+
+
+def group_box(shape, spheres: np.ndarray, blur: float, pad: float | None = None) -> tuple[int, int, int, int]:
+    """The patch (c0, q0, c1, q1) a group of spheres (k, 4) is fitted on:
+    their discs plus ``pad`` px (default 3 blur + 4), clipped to ``shape``."""
     rows, cols = shape
-    pad = 3 * blur + 4
+    pad = 3 * blur + 4 if pad is None else pad
     lo = np.floor(np.min(spheres[:, :2] - spheres[:, 2:3] - pad, axis=0)).astype(int)
     hi = np.ceil(np.max(spheres[:, :2] + spheres[:, 2:3] + pad, axis=0)).astype(int) + 1
     return max(lo[0], 0), max(lo[1], 0), min(hi[0], cols), min(hi[1], rows)
@@ -86,11 +109,7 @@ def fit_group(a: np.ndarray, spheres: np.ndarray, blur: float, noise: float, mas
     roi = a[q0:q1, c0:c1].astype(np.float64)
     h, w = roi.shape
     yy, xx = np.mgrid[0:h, 0:w]
-    wgt = np.ones((h, w))
-    for ox, oy, orad in mask_out:          # other markers' shadows are not this group's background
-        wgt[(xx - (ox - c0)) ** 2 + (yy - (oy - q0)) ** 2 < (1.15 * orad + 3 * blur + 2) ** 2] = 0
-    if invalid is not None:
-        wgt[invalid[q0:q1, c0:c1]] = 0
+    wgt = mask_weights((c0, q0, c1, q1), mask_out, blur, invalid)
     if wgt.sum() < 4 * len(spheres) + 10:
         return None
     s0 = spheres.copy()

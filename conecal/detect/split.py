@@ -21,7 +21,7 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-from .overlap import fit_group, group_box, render
+from .overlap import fit_group, group_box, mask_weights, render_box
 
 # the chi-square fall a new sphere must give, as a fraction of its own model
 # energy: a real shadow's is most of it (0.5-1 for overlaps up to 60 %)
@@ -54,7 +54,7 @@ def split(a: np.ndarray, m, R1: float, mu1, blur: float, noise: float, kappa: fl
     if fit is None:
         return None
     kappa = max(kappa, 1.0)
-    wgt = _weights(box, mask_out, blur, invalid)
+    wgt = mask_weights(box, mask_out, blur, invalid)
     disc = _disc(R1)
     best = None
     while len(fit[1]) < min(_MAX_PARTS, int(np.ceil(ratio)) + 1):
@@ -83,10 +83,7 @@ def split(a: np.ndarray, m, R1: float, mu1, blur: float, noise: float, kappa: fl
         if nxt is None:
             break
         gain = (chi2 - nxt[4]) / kappa
-        local = nxt[1][-1:].copy()
-        local[:, 0] -= c0
-        local[:, 1] -= q0
-        energy = float(np.sum((render((q1 - q0, c1 - c0), local, blur) * wgt / noise) ** 2)) / kappa
+        energy = float(np.sum((render_box(box, nxt[1][-1:], blur) * wgt / noise) ** 2)) / kappa
         # (two shadows nearly on top of each other share most of their energy
         # with the one sphere fitted first; their pair takes most of its misfit)
         if gain < 4 * np.log(n) + 10 or (gain < _EARN * energy and nxt[4] > 0.25 * chi2
@@ -104,27 +101,12 @@ def split(a: np.ndarray, m, R1: float, mu1, blur: float, noise: float, kappa: fl
     return best if np.all(ok_R & ok_mu) else None
 
 
-def _weights(box, mask_out, blur: float, invalid) -> np.ndarray:
-    """1 on the patch's pixels the group's fit uses, 0 on other shadows and dead pixels."""
-    c0, q0, c1, q1 = box
-    yy, xx = np.mgrid[q0:q1, c0:c1]
-    w = np.ones((q1 - q0, c1 - c0))
-    for ox, oy, orad in mask_out:
-        w[(xx - ox) ** 2 + (yy - oy) ** 2 < (1.15 * orad + 3 * blur + 2) ** 2] = 0
-    if invalid is not None:
-        w[invalid[q0:q1, c0:c1]] = 0
-    return w
-
-
 def _model(box, sph: np.ndarray, bg: np.ndarray, blur: float) -> np.ndarray:
     """Spheres (frame px) plus the background plane on the patch ``box``."""
     c0, q0, c1, q1 = box
     h, w = q1 - q0, c1 - c0
-    local = sph.copy()
-    local[:, 0] -= c0
-    local[:, 1] -= q0
     yy, xx = np.mgrid[0:h, 0:w]
-    return render((h, w), local, blur) + bg[0] + bg[1] * (xx - w / 2) + bg[2] * (yy - h / 2)
+    return render_box(box, sph, blur) + bg[0] + bg[1] * (xx - w / 2) + bg[2] * (yy - h / 2)
 
 
 def _disc(R: float) -> np.ndarray:
