@@ -87,3 +87,16 @@ def test_large_mode_levenberg_marquardt_agrees_with_the_trust_region(rng):
     assert lm.success and lm.x == pytest.approx(tr.x, abs=1e-8)
     # covariance from the normal matrix's eigenvectors equals the SVD's
     assert lm.sigma == pytest.approx(tr.sigma, rel=1e-6)
+
+
+def test_large_mode_levenberg_marquardt_stays_within_bounds_and_rests_on_one(rng):
+    """The image level's fits: a bound the data push against is where the
+    estimate rests (then reported as pinned), as scipy's trust region does."""
+    r, j = _decay(rng)
+    params = [Parameter("amplitude", 1.0, scale=0.1, lower=0.0, upper=1.5), Parameter("rate", 0.5, scale=0.1)]
+    tr = solve(params, r, j, tol=1e-12)
+    lm = solve(params, r, j, tol=1e-12, large=True)
+    assert lm.x[0] == pytest.approx(1.5) and tr.x[0] == pytest.approx(1.5)
+    assert lm.x[1] == pytest.approx(tr.x[1], abs=1e-6)
+    free = [Parameter("amplitude", 1.0, scale=0.1, lower=0.0, upper=5.0), Parameter("rate", 0.5, scale=0.1)]
+    assert solve(free, r, j, tol=1e-12, large=True).x == pytest.approx(solve(free, r, j, tol=1e-12).x, abs=1e-8)

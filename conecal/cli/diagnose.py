@@ -114,8 +114,12 @@ def command(result, scan, output, alpha, image_level, image_frames, markers, all
     if image_level:
         with progress_bar("diagnose: image") as prog:
             # robot effects move the poses, which fit-pose measured per frame: nothing to re-render
-            image = diagnose_image(scene, s, geometric_effects=() if pose else final.get("effects") or (),
-                                   geometric_base=None if pose else final["x9"], max_frames=image_frames,
+            # the fit's own scene unless the geometric level changed it: its base refit alone can drift
+            # along directions the centres hardly see (0.4 mm along the beam on a clean scan), which
+            # the shadows' sizes do see
+            claimed = () if pose else tuple(final.get("effects") or ())
+            image = diagnose_image(scene, s, geometric_effects=claimed,
+                                   geometric_base=final["x9"] if claimed else None, max_frames=image_frames,
                                    progress=prog)
         out = merge_levels(out, image)
     units = ({"residual": "px: the holder's mean sphere shadow, fitted pose minus the arm's model",

@@ -63,14 +63,29 @@ class Patch:
     neighbours: list = None       # [(id, lab centre mm, radius mm)] of the other spheres reaching into it
     dchord: np.ndarray = None     # d(own chord image)/d(relative sphere radius)
     weight: np.ndarray = None     # 1 / sigma per pixel
+    m1: float = 0.0               # the sphere's magnification minus 1 (a focal spot's blur grows with it)
+    spot_scale: float = 1.0       # m1 over the scan's mean m1
+    extra_scatter: float = 0.0    # scatter fraction of the background added to this patch alone (a field)
 
 
 def _kernel(sigma: float) -> np.ndarray:
-    x = np.arange(-KERNEL_RADIUS, KERNEL_RADIUS + 1, dtype=float)
+    h = max(KERNEL_RADIUS, int(np.ceil(3.5 * sigma)))
+    x = np.arange(-h, h + 1, dtype=float)
     if sigma < 1e-3:
         k = (x == 0).astype(float)
     else:
         k = np.exp(-0.5 * (x / sigma) ** 2)
+    return k / k.sum()
+
+
+def disc_kernel(radius: float) -> np.ndarray:
+    """A uniform disc of ``radius`` px (a focal spot seen through a sphere),
+    each pixel weighted by the part of it inside the disc, approximated by a
+    one-pixel ramp across the rim so that the kernel changes smoothly with
+    the radius (the fit differentiates it numerically). Sums to 1."""
+    h = int(np.ceil(radius)) + 1
+    yy, xx = np.mgrid[-h:h + 1, -h:h + 1]
+    k = np.clip(radius + 0.5 - np.hypot(xx, yy), 0.0, 1.0)
     return k / k.sum()
 
 
@@ -105,9 +120,10 @@ def _background(img, mask):
 class ImageModel:
     """The recorded patches around every marker and their model."""
 
-    PARAMS = ("mu", "size", "blur", "beam_hardening", "lag", "scatter")
+    PARAMS = ("mu", "size", "blur", "beam_hardening", "lag", "scatter", "spot", "spot_gauss")
 
-    def __init__(self, model, scan, *, effects=(), base=None, max_frames: int = 48, progress=None):
+    def __init__(self, model, scan, *, effects=(), base=None, max_frames: int = 48, progress=None,
+                 margin_px: int = 3):
         self.model = model
         self.scan = scan
         # the scene as the geometric level left it: its effects switched on, its parameters refitted
@@ -124,9 +140,14 @@ class ImageModel:
         self._levels: list[float] = []      # per patch: the smallest step between recorded values
         self._crops: dict = {}      # box -> (cropped detector, its warp)
         self._start_gradients: dict = {}   # (frame, id, h) -> (lab centre, own_gradient there)
+        # px beyond the modelled shadows before the background ring starts: a wide blur needs more
+        self.margin_px = int(margin_px)
         self._build(max_frames, progress)
         if not self.patches:
             raise ValueError("no marker patch is usable at the image level")
+        self.mean_m1 = float(np.mean([p.m1 for p in self.patches]))
+        for p in self.patches:
+            p.spot_scale = p.m1 / self.mean_m1 if self.mean_m1 > 0 else 1.0
         self.sigma_air = float(np.median([p.sigma_air for p in self.patches]))
         self.value_step = float(np.median(self._levels)) if self._levels else 0.0
         self.stored_dtype = str(scan.stack.read_raw(int(self.patches[0].frame)).dtype)
@@ -202,13 +223,14 @@ class ImageModel:
                     prev_rec = self.scan.stack.read(int(fp)).astype(float)
                     L_prev = self._render(self._placed(jp), rp)
                     prev_xy = {int(i): xy for i, xy in zip(o.ids[jp], o.xy[jp])}
-            shadow = cv2.dilate((L > 0).astype(np.uint8), np.ones((7, 7), np.uint8)) > 0
+            ring = np.ones((2 * self.margin_px + 1,) * 2, np.uint8)
+            shadow = cv2.dilate((L > 0).astype(np.uint8), ring) > 0
             if L_prev is not None:
-                shadow |= cv2.dilate((L_prev > 0).astype(np.uint8), np.ones((7, 7), np.uint8)) > 0
+                shadow |= cv2.dilate((L_prev > 0).astype(np.uint8), ring) > 0
             for j, i_obs in enumerate(idx):
                 xy = o.xy[i_obs]
                 rpx = float(radii[j] * g.magnification(X[j]) / g.pixel_pitch[0])
-                half = rpx + blur_pad + 3
+                half = rpx + blur_pad + self.margin_px
                 lo, hi = xy - half, xy + half
                 pxy = prev_xy.get(int(o.ids[i_obs]))
                 if pxy is not None and np.hypot(*(pxy - xy)) < 3 * rpx:
@@ -252,7 +274,8 @@ class ImageModel:
                 self.patches.append(Patch(int(f), int(o.ids[i_obs]), int(row_of_frame[f]) % 2, box,
                                           A, b, own + others, prev, prev_bg, rpx, xy.copy(), float(sig),
                                           X[j].copy(), float(radii[j]), others, nbrs,
-                                          self._dchord(box, X[j], radii[j], own)))
+                                          self._dchord(box, X[j], radii[j], own),
+                                          m1=float(g.magnification(X[j]) - 1.0)))
             if progress:
                 progress(n_done + 1, len(chosen))
 
@@ -260,7 +283,7 @@ class ImageModel:
     def full(self, theta: dict) -> np.ndarray:
         """Parameter vector (5,) from a partial dict, the rest at their base values."""
         base = {"mu": 1.0, "size": 0.0, "blur": self.stated_blur if self.stated_blur is not None else 0.5,
-                "beam_hardening": 0.0, "lag": 0.0, "scatter": 0.0}
+                "beam_hardening": 0.0, "lag": 0.0, "scatter": 0.0, "spot": 0.0, "spot_gauss": 0.0}
         base.update(theta)
         return np.array([base[k] for k in self.PARAMS])
 
@@ -279,24 +302,28 @@ class ImageModel:
         neither the ghost of the previous frame nor the neighbours' shadows
         move with it (a gradient of the whole modelled image moves them too
         and so stops the re-centring short of the shadow)."""
-        mu, size, blur, beta, lag, s = x
+        mu, size, blur, beta, lag, s, spot, spot_g = x
         b = p.background
         a = mu * (p.chord + size * p.dchord)
         lin = unhardened(b, beta) + a
         ps = beam_hardened(lin, beta) - b if beta else a
         T = np.exp(-ps)
-        k = _kernel(abs(blur))
+        # a Gaussian focal spot's blur grows with the sphere's magnification - 1; the detector's does not
+        k = _kernel(np.hypot(blur, spot_g * p.spot_scale))
+        disc = disc_kernel(abs(spot) * p.spot_scale) if spot else None
 
         def blurred(img):
+            if disc is not None:
+                img = cv2.filter2D(img, -1, disc, borderType=cv2.BORDER_REPLICATE)
             return cv2.sepFilter2D(img, -1, k, k, borderType=cv2.BORDER_REPLICATE)
 
         Tf, gain = blurred(T), 1.0
         if lag and p.previous is not None:
             gain = 1 - lag * p.previous_background
             Tf = gain * Tf + lag * p.previous
-        if s:
+        if s or p.extra_scatter:
             # the primary background is exp(-b) - s: the recorded one has the scatter in it
-            sp = s * np.exp(b)
+            sp = s * np.exp(b) + p.extra_scatter
             Tf, gain = Tf + sp * (1 - Tf), gain * (1 - sp)
         Tf = np.maximum(Tf, 1e-9)
         A = b - np.log(Tf)

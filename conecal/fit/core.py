@@ -169,8 +169,8 @@ def solve(parameters: list[Parameter], residuals: Callable[[np.ndarray], np.ndar
 
         if hessian == "numerical":
             res = _newton(fun_g, jac_g, start, lo, hi, scale, loss, f_scale, max_nfev, tol, hessian_step)
-        elif large and loss == "linear" and not bounded:
-            res = _levenberg_marquardt(fun_g, jac_g, start, scale, max_nfev, tol)
+        elif large and loss == "linear":
+            res = _levenberg_marquardt(fun_g, jac_g, start, scale, max_nfev, tol, lo, hi)
         else:
             res = least_squares(fun_g, start, jac=jac_g, bounds=(lo, hi) if bounded else (-np.inf, np.inf),
                                 method="trf", x_scale=scale, loss=loss, f_scale=f_scale, max_nfev=max_nfev,
@@ -257,11 +257,14 @@ def solve(parameters: list[Parameter], residuals: Callable[[np.ndarray], np.ndar
                      hessian=res.hessian / np.outer(scale, scale) if hessian == "numerical" else None)
 
 
-def _levenberg_marquardt(fun, jac, x0, scale, max_nfev, tol):
+def _levenberg_marquardt(fun, jac, x0, scale, max_nfev, tol, lo=None, hi=None):
     """Plain Levenberg-Marquardt on the normal equations (Cholesky), in the
     parameters' scales: for ``large`` problems, where an SVD of J per
-    iteration (scipy's exact trust region) costs more than everything else.
-    Returns an object with scipy's result fields."""
+    iteration (scipy's exact trust region) costs more than everything else,
+    and for few parameters over millions of residuals (the image level).
+    Steps are clipped to the bounds ``lo``, ``hi`` (a parameter may come to
+    rest on one: the caller reports it as pinned). Returns an object with
+    scipy's result fields."""
     from types import SimpleNamespace
 
     x = x0.copy()
@@ -274,16 +277,29 @@ def _levenberg_marquardt(fun, jac, x0, scale, max_nfev, tol):
         g = J.T @ r
         H = J.T @ J
         d = np.maximum(np.diag(H), 1e-12 * max(np.diag(H).max(), 1e-300))
-        if np.max(np.abs(g)) <= tol * max(1.0, 2 * cost):
+        # a parameter resting on a bound that the gradient pushes beyond is held for this step
+        held = np.zeros(len(x), bool) if lo is None else (((x <= lo) & (g > 0)) | ((x >= hi) & (g < 0)))
+        if held.all():
+            status, msg = 2, "every parameter rests on a bound"
+            break
+        if np.max(np.abs(g[~held])) <= tol * max(1.0, 2 * cost):
             status, msg = 1, "gradient below tolerance"
             break
         while nfev < max_nfev:
             try:
-                step = -np.linalg.solve(H + lam * np.diag(d), g)
+                step = np.zeros(len(x))
+                m = ~held
+                step[m] = -np.linalg.solve((H + lam * np.diag(d))[np.ix_(m, m)], g[m])
             except np.linalg.LinAlgError:
                 lam *= 10
                 continue
             x_new = x + step * scale
+            if lo is not None:
+                x_new = np.clip(x_new, lo, hi)
+                step = (x_new - x) / scale
+                if not np.any(step):
+                    status, msg = 2, "at a bound, the step points beyond it"
+                    break
             r_new = fun(x_new)
             nfev += 1
             cost_new = 0.5 * float(r_new @ r_new)
