@@ -10,6 +10,9 @@ patch around it is modelled as
     A = b - ln(T + s' (1 - T)),
     T = (1 - lag r) G_sigma[exp(-(H(b0 + mu L) - b))] + lag T_prev
 
+(with a lag decaying over frames, frame k back adds ``lag decay^(k-1)`` of its
+own recorded transmission, k = 1..3)
+
 with ``b`` the patch's background (a quadratic surface fitted to the pixels outside
 every shadow of this frame and the previous one), ``b0`` its value before
 beam hardening ``H(a) = a / (1 + beta a)``, ``G_sigma`` a Gaussian blur on
@@ -66,6 +69,7 @@ class Patch:
     m1: float = 0.0               # the sphere's magnification minus 1 (a focal spot's blur grows with it)
     spot_scale: float = 1.0       # m1 over the scan's mean m1
     extra_scatter: float = 0.0    # scatter fraction of the background added to this patch alone (a field)
+    earlier: list = None          # [(transmission, background ratio)] of the frames 2 and 3 back, as ``previous``
 
 
 def _kernel(sigma: float) -> np.ndarray:
@@ -120,7 +124,7 @@ def _background(img, mask):
 class ImageModel:
     """The recorded patches around every marker and their model."""
 
-    PARAMS = ("mu", "size", "blur", "beam_hardening", "lag", "scatter", "spot", "spot_gauss")
+    PARAMS = ("mu", "size", "blur", "beam_hardening", "lag", "scatter", "spot", "spot_gauss", "lag_decay")
 
     def __init__(self, model, scan, *, effects=(), base=None, max_frames: int = 48, progress=None,
                  margin_px: int = 3):
@@ -223,6 +227,13 @@ class ImageModel:
                     prev_rec = self.scan.stack.read(int(fp)).astype(float)
                     L_prev = self._render(self._placed(jp), rp)
                     prev_xy = {int(i): xy for i, xy in zip(o.ids[jp], o.xy[jp])}
+            # the frames two and three back: a lag that decays over several frames leaves their ghosts too
+            earlier_rec, r_e = [], r_prev if prev_rec is not None else None
+            for _ in range(2):
+                r_e = prev_row.get(r_e) if r_e is not None else None
+                if r_e is None or r_e not in frame_of_row:
+                    break
+                earlier_rec.append(self.scan.stack.read(int(frame_of_row[r_e])).astype(float))
             ring = np.ones((2 * self.margin_px + 1,) * 2, np.uint8)
             shadow = cv2.dilate((L > 0).astype(np.uint8), ring) > 0
             if L_prev is not None:
@@ -262,6 +273,8 @@ class ImageModel:
                     # bg_mask is clear of the previous frame's shadows too
                     prev = np.exp(-(prev_rec[sl] - b))
                     prev_bg = np.exp(b - _background(prev_rec[sl], bg_mask))
+                earlier = [(np.exp(-(e[sl] - b)), np.exp(b - _background(e[sl], bg_mask)))
+                           for e in earlier_rec if np.isfinite(e[sl]).all()]
                 box = (r0, r1, c0, c1)
                 own = self._render_patch(box, X[j], radii[j])
                 # each neighbour is rendered on its own, so that it can follow
@@ -275,7 +288,7 @@ class ImageModel:
                                           A, b, own + others, prev, prev_bg, rpx, xy.copy(), float(sig),
                                           X[j].copy(), float(radii[j]), others, nbrs,
                                           self._dchord(box, X[j], radii[j], own),
-                                          m1=float(g.magnification(X[j]) - 1.0)))
+                                          m1=float(g.magnification(X[j]) - 1.0), earlier=earlier))
             if progress:
                 progress(n_done + 1, len(chosen))
 
@@ -283,7 +296,7 @@ class ImageModel:
     def full(self, theta: dict) -> np.ndarray:
         """Parameter vector (5,) from a partial dict, the rest at their base values."""
         base = {"mu": 1.0, "size": 0.0, "blur": self.stated_blur if self.stated_blur is not None else 0.5,
-                "beam_hardening": 0.0, "lag": 0.0, "scatter": 0.0, "spot": 0.0, "spot_gauss": 0.0}
+                "beam_hardening": 0.0, "lag": 0.0, "scatter": 0.0, "spot": 0.0, "spot_gauss": 0.0, "lag_decay": 0.0}
         base.update(theta)
         return np.array([base[k] for k in self.PARAMS])
 
@@ -302,7 +315,7 @@ class ImageModel:
         neither the ghost of the previous frame nor the neighbours' shadows
         move with it (a gradient of the whole modelled image moves them too
         and so stops the re-centring short of the shadow)."""
-        mu, size, blur, beta, lag, s, spot, spot_g = x
+        mu, size, blur, beta, lag, s, spot, spot_g, decay = x
         b = p.background
         a = mu * (p.chord + size * p.dchord)
         lin = unhardened(b, beta) + a
@@ -320,7 +333,14 @@ class ImageModel:
         Tf, gain = blurred(T), 1.0
         if lag and p.previous is not None:
             gain = 1 - lag * p.previous_background
-            Tf = gain * Tf + lag * p.previous
+            ghost = lag * p.previous
+            if decay:
+                # frame k back keeps lag * decay^(k-1) (recorded frames: their own lag is second order)
+                for k, (Te, be) in enumerate(p.earlier or (), start=1):
+                    c = lag * decay ** k
+                    gain = gain - c * be
+                    ghost = ghost + c * Te
+            Tf = gain * Tf + ghost
         if s or p.extra_scatter:
             # the primary background is exp(-b) - s: the recorded one has the scatter in it
             sp = s * np.exp(b) + p.extra_scatter

@@ -5,6 +5,8 @@ follows their variable.
 - A focal spot: each sphere's shadow blurred by the spot's image, whose
   size grows with the sphere's magnification minus one (a detector's blur
   does not); as a uniform disc or a Gaussian.
+- Lag that decays over frames: frame k back keeps ``lag decay^(k-1)``
+  (k = 1..3); one frame's lag is the member with ``decay`` 0.
 - Scatter that varies over the detector: a smooth field (a grid of broad
   Gaussian bumps) of the scatter fraction of the background, its grid
   chosen on held-out patches.
@@ -69,6 +71,23 @@ def spot_candidates(im, Candidate) -> list:
         lambda v: Named(SPOT_PHYSICS), lambda v: v[0], FLOORS["spot_gauss"],
         begin=lambda x, im: begin(x, im, i_gauss, 0.9))
     return [disc, gauss]
+
+
+LAG_PHYSICS = ("the scintillator's afterglow decays over several frames: each frame keeps a share of the previous "
+               "ones, smaller the further back")
+
+
+def lag_candidate(Candidate, floor: float):
+    """The lag member that decays over three frames."""
+    def words(v, s):
+        shares = ", ".join(f"{100 * v[0] * v[1] ** k:.2f} %" for k in range(3))
+        return (f"each frame keeps {shares} of the frames 1, 2 and 3 back (lag {100 * v[0]:.2f} ± {100 * s[0]:.2f} % "
+                f"decaying by {v[1]:.2f} ± {s[1]:.2f} per frame: ghosts of earlier marker positions; they pull "
+                "detected centres back)")
+
+    return Candidate("detector_lag:decaying", ("lag", "lag_decay"), words, lambda v: Named(LAG_PHYSICS),
+                     lambda v: v[0], floor,
+                     lambda v: "a detector cannot keep a negative fraction of a frame (lag < 0)" if v[0] < 0 else None)
 
 
 def field_candidate(im, x, Candidate):

@@ -20,7 +20,7 @@ from ..effects.imaging import BeamHardening, Blur, DetectorLag, Scatter
 from ..errors import FitError
 from ..fit.core import Parameter, solve
 from .image import ImageModel
-from .image_families import field_candidate, spot_candidates
+from .image_families import field_candidate, lag_candidate, spot_candidates
 from .image_locate import describe as describe_located
 from .image_locate import locate_image
 
@@ -42,6 +42,10 @@ class ImageCandidate:
     @property
     def k(self) -> int:
         return len(self.free) + self.n_extra
+
+    @property
+    def family_key(self) -> str:
+        return self.label.split(":")[0]
 
     def big_enough(self, v) -> bool:
         return self.size is None or abs(float(self.size(np.asarray(v, float)))) >= self.floor
@@ -97,9 +101,9 @@ def image_candidates(im: ImageModel) -> list[ImageCandidate]:
 
 
 BOUNDS = {"mu": (1e-6, np.inf), "size": (-0.2, 0.2), "blur": (0.0, 3.0), "beam_hardening": (-0.5, 3.0), "lag": (-0.5, 0.95),
-          "scatter": (-0.5, 2.0), "spot": (0.0, 15.0), "spot_gauss": (0.0, 8.0)}
+          "scatter": (-0.5, 2.0), "spot": (0.0, 15.0), "spot_gauss": (0.0, 8.0), "lag_decay": (0.0, 0.95)}
 SCALES = {"mu": 0.01, "size": 0.001, "blur": 0.05, "beam_hardening": 0.01, "lag": 0.01, "scatter": 0.005,
-          "spot": 0.1, "spot_gauss": 0.05}
+          "spot": 0.1, "spot_gauss": 0.05, "lag_decay": 0.05}
 
 
 class ImageFitter:
@@ -277,6 +281,7 @@ def untrusted_values(im: ImageModel) -> str | None:
 
 
 def _decide(im: ImageModel) -> dict:
+    from .ranking import choose_members
     from .select import ADEQUATE_RMS, rank, score
 
     x0 = im.start()
@@ -308,6 +313,7 @@ def _decide(im: ImageModel) -> dict:
         rows.append({"effect": c.label, "parameters": dict(zip(c.free, v)),
                      "sigma": {n: float(e["sigma"][n]) for n in c.free}, **sc,
                      **({"field": dict(c.state)} if c.prepare is not None else {})})
+    choose_members(rows, cands, evals)
     claimed, ambiguous = rank(rows, {k: e["heldout_r2"] for k, e in evals.items()})
     chosen = [claimed[0]["effect"]] if claimed else []
     final = evals[chosen[0]] if chosen else base
@@ -425,6 +431,8 @@ def _flexible(im, x, located) -> list:
                 for it in located if it["curve"] != "residual")
     if edge:
         out += spot_candidates(im, ImageCandidate)
+    if any(it["curve"] == "ghost" for it in located):
+        out.append(lag_candidate(ImageCandidate, FLOORS["detector_lag"]))
     if field:
         c = field_candidate(im, x, ImageCandidate)
         out += [c] if c is not None else []
