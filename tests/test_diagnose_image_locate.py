@@ -77,3 +77,29 @@ def test_disc_kernel_is_a_disc_that_moves_smoothly_with_its_radius(radius):
     d = (disc_kernel(radius + 1e-4)[1:-1, 1:-1] if disc_kernel(radius + 1e-4).shape != k.shape
          else disc_kernel(radius + 1e-4)) - k
     assert 0 < np.abs(d).sum() < 1e-3      # a step of 1e-4 px changes it, a little
+
+
+def test_a_lag_decaying_over_frames_adds_each_earlier_frame_with_its_share():
+    """The image model's ghost term: frame k back keeps lag * decay^(k-1) of its recorded
+    transmission, and the background keeps its level (the recorded one has the lag in it)."""
+    from conecal.diagnose.image import ImageModel, Patch
+
+    yy, xx = np.mgrid[0:31, 0:31]
+    chord = 2 * np.sqrt(np.clip(64 - (xx - 15.0) ** 2 - (yy - 15.0) ** 2, 0, None))
+    prev, T2, T3 = (np.exp(-0.5 * np.roll(chord, s, axis=1)) for s in (3, 6, 9))
+    bg = np.full(chord.shape, 0.2)
+    p = Patch(0, 0, 0, (0, 31, 0, 31), np.zeros_like(chord), bg, chord, prev, np.ones_like(chord), 8.0,
+              np.array([15.0, 15.0]), 0.01, earlier=[(T2, np.ones_like(chord)), (T3, np.ones_like(chord))])
+    p.dchord = np.zeros_like(chord)
+    x = np.zeros(len(ImageModel.PARAMS))
+    x[ImageModel.PARAMS.index("mu")] = 0.5
+    lag, decay = 0.04, 0.5
+    x[ImageModel.PARAMS.index("lag")] = lag
+    one = ImageModel.predict_patch(None, p, x)
+    T = np.exp(-0.5 * chord)
+    assert one == pytest.approx(bg - np.log((1 - lag) * T + lag * prev), abs=1e-12)
+    x[ImageModel.PARAMS.index("lag_decay")] = decay
+    c = [lag, lag * decay, lag * decay ** 2]
+    expect = bg - np.log((1 - sum(c)) * T + c[0] * prev + c[1] * T2 + c[2] * T3)
+    assert ImageModel.predict_patch(None, p, x) == pytest.approx(expect, abs=1e-12)
+    assert not np.allclose(expect, one)
