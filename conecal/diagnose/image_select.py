@@ -281,7 +281,7 @@ def untrusted_values(im: ImageModel) -> str | None:
 
 
 def _decide(im: ImageModel) -> dict:
-    from .ranking import choose_members
+    from .ranking import choose_members, not_worse, paired_behind
     from .select import ADEQUATE_RMS, rank, score
 
     x0 = im.start()
@@ -316,6 +316,16 @@ def _decide(im: ImageModel) -> dict:
     choose_members(rows, cands, evals)
     claimed, ambiguous = rank(rows, {k: e["heldout_r2"] for k, e in evals.items()})
     chosen = [claimed[0]["effect"]] if claimed else []
+    by = {c.label: c for c in cands}
+    if chosen:
+        # a member of the same family with as many parameters that held-out data cannot tell from the one
+        # chosen (a detector's blur and a Gaussian focal spot on a scan of one magnification): ambiguous
+        for r in rows:
+            c, top = by[r["effect"]], by[chosen[0]]
+            if (r["effect"] != top.label and c.family_key == top.family_key and c.k == top.k and r.get("not_chosen")
+                    and not r.get("degenerate") and not r.get("impossible") and r["above_floor"]
+                    and not_worse(*paired_behind(evals[c.label]["heldout_r2"], evals[top.label]["heldout_r2"]))):
+                ambiguous.append(r["effect"])
     final = evals[chosen[0]] if chosen else base
     n = base["n"]
     if claimed and final["chi2"] / n - 1 > max(5 * np.sqrt(2 / n), SECOND_EFFECT_EXCESS):
