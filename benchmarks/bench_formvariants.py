@@ -150,6 +150,7 @@ def main() -> int:
     ap.add_argument("--cases", nargs="*", help="case names (default: every case of the generator)")
     ap.add_argument("--seeds", type=int, default=5)
     ap.add_argument("--clean-seeds", type=int, default=10)
+    ap.add_argument("--first-seed", type=int, default=0, help="seeds first-seed .. first-seed + seeds - 1")
     ap.add_argument("--no-image", action="store_true", help="marker level only (image cases then score as such)")
     ap.add_argument("--keep", type=Path, default=None, help="keep the scans here")
     a = ap.parse_args()
@@ -160,7 +161,7 @@ def main() -> int:
         root = a.keep or Path(tmp)
         root.mkdir(parents=True, exist_ok=True)
         for name in names:
-            for seed in range(a.clean_seeds if name in ("clean", "image_clean") else a.seeds):
+            for seed in range(a.first_seed, a.first_seed + (a.clean_seeds if name in ("clean", "image_clean") else a.seeds)):
                 row = run_case(gen, name, seed, root, image=not a.no_image)
                 rows.append(row)
                 if "error" in row:
