@@ -29,6 +29,7 @@ the located variable, and time.
     python benchmarks/bench_formvariants.py                     # every case, seeds 0-4, clean x10
     python benchmarks/bench_formvariants.py --seeds 1 --no-image
     python benchmarks/bench_formvariants.py --cases wobble_nod two_speed --seeds 2
+    python benchmarks/bench_formvariants.py --cases lag_far --first-seed 2 --seeds 3   # seeds 2-4
 """
 
 from __future__ import annotations
