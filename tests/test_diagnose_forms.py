@@ -37,3 +37,10 @@ def test_an_eccentric_encoder_is_described_not_claimed_as_drift(tmp_path):
     p = desc[0]["parameters"]
     assert abs(np.hypot(p["a_cos"], p["a_sin"]) - truth) < 0.1 * truth
     assert "eccentric" in d["verdict"]
+
+
+def test_a_warp_centred_far_off_the_detector_is_not_a_distortion():
+    from conecal.diagnose.candidates import _far_centre
+
+    assert _far_centre((58.0, -12892.0), (512, 512)) is not None      # the fit seen on a two-speed scan
+    assert _far_centre((-200.0, 150.0), (512, 512)) is None            # an intensifier's off-centre point

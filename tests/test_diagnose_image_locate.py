@@ -103,3 +103,4 @@ def test_a_lag_decaying_over_frames_adds_each_earlier_frame_with_its_share():
     expect = bg - np.log((1 - sum(c)) * T + c[0] * prev + c[1] * T2 + c[2] * T3)
     assert ImageModel.predict_patch(None, p, x) == pytest.approx(expect, abs=1e-12)
     assert not np.allclose(expect, one)
+

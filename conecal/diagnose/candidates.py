@@ -274,7 +274,8 @@ def _distortion_family(model) -> list[Candidate]:
                                       f"radial {x[2]:+.3f} ± {s[2]:.3f} and {x[3]:+.3f} ± {s[3]:.3f} px, tangential "
                                       f"{np.hypot(x[4], x[5]):.3f} px, S-shaped {x[6]:+.3f} ± {s[6]:.3f} px at the "
                                       "corner (as an image intensifier)",
-                         family="detector_distortion", flexible=True, follows=("detector position",)))
+                         family="detector_distortion", flexible=True, follows=("detector position",),
+                         impossible=lambda x: _far_centre(x[:2], shape)))
     poly = Distortion.polynomial(shape, 3)
     out.append(Candidate("detector_distortion:polynomial3", poly.names, ("px",) * len(poly.names),
                          (0.05,) * len(poly.names),
@@ -284,6 +285,16 @@ def _distortion_family(model) -> list[Candidate]:
                                       "markers are)",
                          family="detector_distortion", flexible=True, follows=("detector position",)))
     return out
+
+
+def _far_centre(offset, shape) -> str | None:
+    """A warp centred further from the detector's centre than the detector's own size (rows, cols) is a
+    fitted curvature, not a detector's distortion."""
+    dc, dr = (float(v) for v in offset)
+    if abs(dc) > shape[1] or abs(dr) > shape[0]:
+        return (f"the warp's centre is ({dc:+.0f}, {dr:+.0f}) px from the detector's centre, more than the "
+                "detector's own size: not a distortion of this detector")
+    return None
 
 
 def _field_peak(dist, model) -> float:
