@@ -21,3 +21,14 @@ def difference_sigma(d, axis=None, centre: bool = True):
     values (neighbouring pixels, consecutive frames): the differences scatter
     sqrt(2) times as much as each value."""
     return mad_sigma(d, axis=axis, centre=centre) / np.sqrt(2.0)
+
+
+def holm(p) -> np.ndarray:
+    """Holm's step-down adjustment of p-values (family-wise error over all of them)."""
+    p = np.asarray(p, float)
+    adj = np.empty(len(p))
+    running = 0.0
+    for rank, i in enumerate(np.argsort(p)):
+        running = max(running, min(1.0, (len(p) - rank) * p[i]))
+        adj[i] = running
+    return adj

@@ -6,7 +6,8 @@ import numpy as np
 import pytest
 
 from conecal.diagnose.image import disc_kernel
-from conecal.diagnose.image_locate import CURVES, FLOORS, _holm, curve_tests, field_degree
+from conecal.diagnose.image_locate import CURVES, FLOORS, curve_tests, field_degree
+from conecal.stats import holm
 
 
 def _patches(n=300, seed=0):
@@ -18,7 +19,7 @@ def _patches(n=300, seed=0):
 
 
 def _significant(tests, curve, alpha=0.01):
-    p = _holm(np.array([t["p"] for t in tests]))
+    p = holm([t["p"] for t in tests])
     return [t for t, a in zip(tests, p) if t["curve"] == curve and a < alpha and t["size"] >= FLOORS[curve]]
 
 

@@ -46,7 +46,7 @@ def spot_candidates(im, Candidate) -> list:
     def mm(v):
         return v * pitch / m1 if m1 > 0 else float("nan")
 
-    i_blur, i_disc, i_gauss = (im.PARAMS.index(n) for n in ("blur", "spot", "spot_gauss"))
+    i_blur = im.PARAMS.index("blur")
 
     def begin(x, im, i_spot, factor):
         # the fitted detector blur is taken to be the spot's, mostly: a radius-R disc reads as sigma R / 2
@@ -56,21 +56,18 @@ def spot_candidates(im, Candidate) -> list:
             x[i_blur] *= 0.3
         return x
 
-    disc = Candidate(
-        "blur:focal_spot_disc", ("spot",),
-        lambda v, s: (f"shadows are blurred by a uniform disc of radius {v[0]:.3f} ± {s[0]:.3f} px at the mean "
-                      f"magnification, growing with each sphere's magnification minus one: a uniform focal spot of "
-                      f"radius {mm(v[0]):.4f} mm"),
-        lambda v: Named(SPOT_PHYSICS), lambda v: v[0], FLOORS["spot"],
-        begin=lambda x, im: begin(x, im, i_disc, 2.0))
-    gauss = Candidate(
-        "blur:focal_spot_gauss", ("spot_gauss",),
-        lambda v, s: (f"shadows are blurred by a Gaussian of sigma {v[0]:.3f} ± {s[0]:.3f} px at the mean "
-                      f"magnification, growing with each sphere's magnification minus one: a Gaussian focal spot "
-                      f"of sigma {mm(v[0]):.4f} mm"),
-        lambda v: Named(SPOT_PHYSICS), lambda v: v[0], FLOORS["spot_gauss"],
-        begin=lambda x, im: begin(x, im, i_gauss, 0.9))
-    return [disc, gauss]
+    def member(label, name, kernel, size_words, factor):
+        i_spot = im.PARAMS.index(name)
+        return Candidate(
+            label, (name,),
+            lambda v, s: (f"shadows are blurred by {kernel} of {size_words} {v[0]:.3f} ± {s[0]:.3f} px at the mean "
+                          f"magnification, growing with each sphere's magnification minus one: {kernel} focal spot "
+                          f"of {size_words} {mm(v[0]):.4f} mm"),
+            lambda v: Named(SPOT_PHYSICS), lambda v: v[0], FLOORS[name],
+            begin=lambda x, im: begin(x, im, i_spot, factor))
+
+    return [member("blur:focal_spot_disc", "spot", "a uniform disc", "radius", 2.0),
+            member("blur:focal_spot_gauss", "spot_gauss", "a Gaussian", "sigma", 0.9)]
 
 
 LAG_PHYSICS = ("the scintillator's afterglow decays over several frames: each frame keeps a share of the previous "

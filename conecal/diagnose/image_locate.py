@@ -40,6 +40,8 @@ import numpy as np
 from scipy.stats import chi2 as chi2_dist
 from scipy.stats import f as f_dist
 
+from ..stats import holm
+
 CURVES = ("gain", "scatter", "edge", "ghost")
 UNITS = {"gain": "fraction of the modelled attenuation", "scatter": "fraction of the background intensity",
          "edge": "px^2 (Gaussian variance added)", "ghost": "fraction of the previous frame"}
@@ -56,26 +58,25 @@ EDGE_STEP = 0.25     # px^2: the variance step of the edge column
 DEGREES = (1, 2, 3)
 
 
-def _column(im, p, x, name):
-    """d(modelled attenuation)/d(curve) on patch ``p`` at parameters ``x``, by a finite step."""
-    A = im.predict_patch(p, x)
+def _column(im, p, x, name, A):
+    """d(modelled attenuation)/d(curve) on patch ``p`` at parameters ``x`` (``A``: the model there), by a finite step."""
     if name == "gain":
-        return A - p.background, A
+        return A - p.background
     y = np.array(x, float)
     if name == "scatter":
         keep = p.extra_scatter
         p.extra_scatter = keep + 0.01
         try:
-            return (im.predict_patch(p, y) - A) / 0.01, A
+            return (im.predict_patch(p, y) - A) / 0.01
         finally:
             p.extra_scatter = keep
     if name == "edge":
         i = im.PARAMS.index("blur")
         y[i] = np.sqrt(y[i] ** 2 + EDGE_STEP)
-        return (im.predict_patch(p, y) - A) / EDGE_STEP, A
+        return (im.predict_patch(p, y) - A) / EDGE_STEP
     i = im.PARAMS.index("lag")
     y[i] += 0.01
-    return (im.predict_patch(p, y) - A) / 0.01, A
+    return (im.predict_patch(p, y) - A) / 0.01
 
 
 def patch_curves(im, x, curves=CURVES) -> dict:
@@ -86,11 +87,12 @@ def patch_curves(im, x, curves=CURVES) -> dict:
     sig = {c: np.full(n, np.nan) for c in CURVES}
     for i, p in enumerate(im.patches):
         w2 = p.weight ** 2
+        A = im.predict_patch(p, x)
+        r = p.recorded - A
         for c in curves:
             if c == "ghost" and p.previous is None:
                 continue
-            col, A = _column(im, p, x, c)
-            r = p.recorded - A
+            col = _column(im, p, x, c, A)
             h = float((w2 * col * col).sum())
             if h <= 0:
                 continue
@@ -229,7 +231,7 @@ def locate_image(im, x, alpha: float = 0.01) -> dict:
     tests = curve_tests(vals)
     profs = [profile(im, x, "radius"), profile(im, x, "attenuation")]
     allp = [t["p"] for t in tests] + [pr["p"] for pr in profs]
-    adj = _holm(np.array(allp))
+    adj = holm(allp)
     for t, a in zip(tests + profs, adj):
         t["p_adjusted"] = float(a)
     noise = float(im.sigma_air)
@@ -250,17 +252,6 @@ def locate_image(im, x, alpha: float = 0.01) -> dict:
                             "p_adjusted": pr["p_adjusted"], "size_in_noise": pr["size"] / noise})
     located.sort(key=lambda t: -t["chi2"] if "chi2" in t else 0.0)
     return {"located": located, "tests": tests, "profiles": profs, "curves": vals}
-
-
-def _holm(p: np.ndarray) -> np.ndarray:
-    order = np.argsort(p)
-    m = len(p)
-    adj = np.empty(m)
-    run = 0.0
-    for rank, i in enumerate(order):
-        run = max(run, min(1.0, (m - rank) * p[i]))
-        adj[i] = run
-    return adj
 
 
 def describe(item: dict) -> str:

@@ -387,8 +387,8 @@ def _decide(im: ImageModel) -> dict:
         "partial": partial,
         "status": "claimed" if found else "located" if (partial or loc0["located"] or before > ADEQUATE_RMS ** 2)
         else "clean",
-        "located": _jsonable(loc0["located"]),
-        "remaining": _jsonable(remaining) if chosen else [],
+        "located": loc0["located"],
+        "remaining": remaining if chosen else [],
         "ambiguous_with": ambiguous if found else [],
         "candidates": rows,
         "stated_blur_px": im.stated_blur,
@@ -425,10 +425,6 @@ def _wide_margin(im: ImageModel) -> int:
 
 def _family(label: str) -> str:
     return label.split(":")[0]
-
-
-def _jsonable(items: list) -> list:
-    return [{k: v for k, v in it.items()} for it in items]
 
 
 def _flexible(im, x, located) -> list:

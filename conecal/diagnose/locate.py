@@ -33,6 +33,8 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.stats import chi2
 
+from ..stats import holm
+
 # a located curve must also be at least this many px on the detector: the
 # noise floor of detect is ~0.01-0.02 px, and no geometry cares below this
 MIN_SIZE_PX = 0.005
@@ -239,14 +241,7 @@ def locate(model, curves: FrameCurves, alpha: float = 0.01) -> list[dict]:
         else:
             p = float(chi2.sf(d, dof))
         pvals.append(p)
-    pvals = np.array(pvals)
-    order = np.argsort(pvals)
-    m = len(pvals)
-    adj = np.empty(m)
-    running = 0.0
-    for rank, i in enumerate(order):
-        running = max(running, min(1.0, (m - rank) * pvals[i]))
-        adj[i] = running
+    adj = holm(pvals)
     out = []
     for k, name in enumerate(curves.names):
         mine = [i for i, t in enumerate(trials) if t[0] == k and adj[i] < alpha]

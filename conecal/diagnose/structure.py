@@ -13,6 +13,8 @@ from __future__ import annotations
 import numpy as np
 from scipy.stats import chi2
 
+from ..stats import holm
+
 
 def _drop(z, basis):
     """chi^2 explained by ``basis`` (m, k) beyond a constant, summed over the components of ``z`` (m, c)."""
@@ -70,12 +72,7 @@ def structure_tests(model, residual_whitened: np.ndarray, alpha: float = 0.01) -
         d = _drop(z, basis)
         dof = z.shape[1] * basis.shape[1]
         tests.append({"variable": name, "chi2_explained": d, "dof": dof, "p": float(chi2.sf(d, dof))})
-    order = np.argsort([t["p"] for t in tests])
-    m = len(tests)
-    running = 0.0
-    for rank, i in enumerate(order):
-        adj = min(1.0, (m - rank) * tests[i]["p"])
-        running = max(running, adj)
-        tests[i]["p_adjusted"] = running
-        tests[i]["significant"] = bool(running < alpha)
+    for t, adj in zip(tests, holm([t["p"] for t in tests])):
+        t["p_adjusted"] = float(adj)
+        t["significant"] = bool(adj < alpha)
     return sorted(tests, key=lambda t: t["p"])
