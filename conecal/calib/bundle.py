@@ -94,6 +94,16 @@ class Bundle:
     covariance_scale: float = 1.0
     names: list = field(default_factory=list)
     slot: np.ndarray | None = None     # each residual's frame slot
+    # per-frame intrinsics: name -> prior sigma (mm or px) of a frame's offset
+    # from the shared value, and the offsets (F, 3) in INTRINSICS order
+    frame_intrinsics: dict = field(default_factory=dict)
+    offsets: np.ndarray | None = None
+
+    def frame_camera(self, slot: int) -> Camera:
+        """The camera of frame ``slot``: the shared intrinsics plus its offsets."""
+        if self.offsets is None:
+            return self.camera
+        return self.camera.with_intrinsics(self.camera.intrinsics() + self.offsets[slot])
 
     def frame_distortion(self, slot: int) -> Distortion | None:
         if self.distortion is None or not self.family.per_frame:
@@ -107,7 +117,7 @@ class Bundle:
         """Measured position (N, 2) px of phantom points (N, 3) in frames ``slot``;
         with ``radius`` (mm) the sphere shadow's centroid, else the point's."""
         X = np.einsum("nij,nj->ni", self.R[slot], points) + self.t[slot]
-        q = self.camera.project(X)
+        q = self.camera.project_jacobians(X, None if self.offsets is None else self.offsets[slot])[0]
         if radius:
             q = q + shadow_bias(self.camera.geometry(), X, radius, coarse=True)
         return _distort(self, q, slot)
@@ -115,6 +125,18 @@ class Bundle:
     def sigma(self, name: str) -> float:
         i = self.fit.names.index(name)
         return float(self.fit.sigma[i] * np.sqrt(self.covariance_scale))
+
+    def frame_intrinsic(self, slot: int, name: str) -> tuple[float, float]:
+        """Frame ``slot``'s own value of intrinsic ``name`` (shared + offset) and
+        its sigma (with the covariance of the two)."""
+        i = INTRINSICS.index(name)
+        value = float(self.camera.intrinsics()[i] + (self.offsets[slot, i] if self.offsets is not None else 0.0))
+        names = [n for n, f in zip(self.fit.names, self.fit.free) if f]
+        idx = [names.index(name)]
+        if name in self.frame_intrinsics:
+            idx.append(names.index(f"frame{slot}_{name}_offset"))
+        C = self.fit.covariance[np.ix_(idx, idx)]
+        return value, float(np.sqrt(max(C.sum(), 0.0) * self.covariance_scale))
 
 
 def _distort(b: Bundle, q, slot):
@@ -129,7 +151,8 @@ def _distort(b: Bundle, q, slot):
 
 def adjust(family: Family, camera: Camera, obs: Observations, points: np.ndarray, radius: float,
            R0: np.ndarray, t0: np.ndarray, start: Bundle | None = None, passes: int = 2,
-           max_nfev: int = 60, covariance: bool = True, probe: bool = False) -> Bundle:
+           max_nfev: int = 60, covariance: bool = True, probe: bool = False,
+           frame_intrinsics: dict | None = None) -> Bundle:
     """Fit all poses, the intrinsics and ``family``'s distortion to ``obs``.
 
     ``R0``, ``t0``: starting poses per slot; ``start``: a solved bundle whose
@@ -139,11 +162,25 @@ def adjust(family: Family, camera: Camera, obs: Observations, points: np.ndarray
     honest when detect's sigmas are too small. ``probe``: return the start
     vector and ``model(x, need_jac) -> (measured (N, 2), d/dx (N, 2, P))``
     instead of solving (for the tests).
+
+    ``frame_intrinsics``: name (of ``INTRINSICS``) -> sigma (mm or px) frees
+    that intrinsic per frame as an offset from the shared value, with a
+    zero-mean Gaussian prior of that sigma (a sagging C-arm: the prior
+    keeps a frame's offset from trading with its pose where one view cannot
+    tell them apart, and the shared value is the offsets' centre). None:
+    as ``start`` has it, else none.
     """
     F = len(R0) if R0 is not None else len(start.R)
     shape = camera.shape
     dist = family.start(shape)
     per = np.zeros((F, len(family.per_frame)))
+    if frame_intrinsics is None:
+        frame_intrinsics = dict(start.frame_intrinsics) if start is not None else {}
+    fi_idx = [INTRINSICS.index(n) for n in frame_intrinsics]
+    fi_sig = np.array([float(frame_intrinsics[n]) for n in frame_intrinsics])
+    off = np.zeros((F, 3))
+    if start is not None and start.offsets is not None:
+        off[:, fi_idx] = start.offsets[:, fi_idx]
     if start is not None:
         camera, R0, t0 = start.camera, start.R.copy(), start.t.copy()
         if dist is not None and start.distortion is not None and start.distortion.model == dist.model:
@@ -175,12 +212,15 @@ def adjust(family: Family, camera: Camera, obs: Observations, points: np.ndarray
     scales += [0.1] * len(family.shared)
     units += ["px"] * len(family.shared)
     i_pose = len(names)
-    npf = 6 + len(family.per_frame)
+    npd = 6 + len(family.per_frame)
+    npf = npd + len(fi_idx)
     for k in range(F):
         names += [f"frame{k}_{n}" for n in POSE] + [f"frame{k}_distortion_{n}" for n in family.per_frame]
-        values += [0, 0, 0, *t0[k]] + list(per[k])
-        scales += [1e-3, 1e-3, 1e-3, 0.01, 0.01, 0.01] + [0.1] * len(family.per_frame)
+        names += [f"frame{k}_{INTRINSICS[i]}_offset" for i in fi_idx]
+        values += [0, 0, 0, *t0[k]] + list(per[k]) + list(off[k, fi_idx])
+        scales += [1e-3, 1e-3, 1e-3, 0.01, 0.01, 0.01] + [0.1] * len(family.per_frame) + [0.1] * len(fi_idx)
         units += ["rad"] * 3 + ["mm"] * 3 + ["px"] * len(family.per_frame)
+        units += ["mm" if i == 0 else "px" for i in fi_idx]
     shared_idx = [dist.names.index(n) for n in family.shared] if dist is not None else []
     per_idx = [dist.names.index(n) for n in family.per_frame] if dist is not None else []
     sig = obs.sigma[:, None]
@@ -195,14 +235,19 @@ def adjust(family: Family, camera: Camera, obs: Observations, points: np.ndarray
             coef[shared_idx] = x[i_coef:i_coef + len(shared_idx)]
             d = dist.with_coefficients(coef, centre)
         blocks = x[i_pose:].reshape(F, npf)
-        Rk = np.array([rotvec_to_matrix(w) @ R for w, R in zip(blocks[:, :3], R0)])
+        Rk = rotvec_to_matrix(blocks[:, :3]) @ R0
         return cam, d, blocks, Rk
+
+    def offsets(blocks):
+        o = np.zeros((F, 3))
+        o[:, fi_idx] = blocks[:, npd:]
+        return o
 
     def model(x, need_jac=False):
         cam, d, blocks, Rk = unpack(x)
         Rp = np.einsum("nij,nj->ni", Rk[slot], pts)
         X = Rp + blocks[slot, 3:6]
-        q, JX, JK = cam.project_jacobians(X)
+        q, JX, JK = cam.project_jacobians(X, offsets(blocks)[slot] if fi_idx else None)
         q = q + bias
         if d is None:
             m = q
@@ -212,7 +257,7 @@ def adjust(family: Family, camera: Camera, obs: Observations, points: np.ndarray
             basis = d.basis(q)
             coef = np.tile(np.asarray(d.coefficients), (N, 1))
             if per_idx:
-                coef[:, per_idx] = blocks[slot, 6:]
+                coef[:, per_idx] = blocks[slot, 6:npd]
             m = q + np.einsum("nij,nj->ni", basis, coef)
             if need_jac:
                 eps = 1e-3
@@ -234,8 +279,7 @@ def adjust(family: Family, camera: Camera, obs: Observations, points: np.ndarray
             J[:, :, 3:5] = Jc
         for j, ci in enumerate(shared_idx):
             J[:, :, i_coef + j] = basis[:, :, ci]
-        w = blocks[:, :3]
-        Jw = np.array([so3_left_jacobian(v) for v in w])
+        Jw = so3_left_jacobian(blocks[:, :3])
         cols = i_pose + slot * npf
         rows = np.arange(N)
         JR = AJX @ (-skew(Rp) @ Jw[slot])
@@ -244,6 +288,9 @@ def adjust(family: Family, camera: Camera, obs: Observations, points: np.ndarray
             J[rows, :, cols + 3 + a] = AJX[:, :, a]
         for j, ci in enumerate(per_idx):
             J[rows, :, cols + 6 + j] = basis[:, :, ci]
+        JKa = JK if A is None else A @ JK
+        for j, i in enumerate(fi_idx):
+            J[rows, :, cols + npd + j] = JKa[:, :, i]
         return m, J
 
     params = [Parameter(n, v, scale=s, unit=u, undetermined_sigma=np.inf) for n, v, s, u in zip(names, values, scales, units)]
@@ -258,9 +305,15 @@ def adjust(family: Family, camera: Camera, obs: Observations, points: np.ndarray
         centre0 = np.array(detector_centre(shape))
         prior_w = 1.0 / (0.5 * dist.radius)
         prior_J[0, 3], prior_J[1, 4] = prior_w, prior_w
+    # the per-frame intrinsics' zero-mean prior: one row per frame and name
+    off_cols = (i_pose + np.arange(F)[:, None] * npf + npd + np.arange(len(fi_idx))[None]).ravel()
+    off_w = np.tile(1.0 / fi_sig, F) if fi_idx else np.zeros(0)
+    prior_J = np.vstack([prior_J, np.zeros((len(off_cols), len(x)))])
+    prior_J[np.arange(len(off_cols)) + len(prior_J) - len(off_cols), off_cols] = off_w
 
     def prior_r(x):
-        return (x[3:5] - centre0) * prior_w if family.free_centre else np.zeros(0)
+        c = (x[3:5] - centre0) * prior_w if family.free_centre else np.zeros(0)
+        return np.concatenate([c, x[off_cols] * off_w])
     fit = None
     for _ in range(passes):  # noqa: B007 (the pass number picks the last)
         cam, d, blocks, Rk = unpack(x)
@@ -279,7 +332,8 @@ def adjust(family: Family, camera: Camera, obs: Observations, points: np.ndarray
     fit.chi2 = float(np.sum((res / sig) ** 2))
     fit.dof = int(2 * N - fit.free.sum())
     scale = max(1.0, fit.reduced_chi2) if np.isfinite(fit.reduced_chi2) else 1.0
-    return Bundle(family, cam, d, blocks[:, 6:].copy(), Rk, blocks[:, 3:6].copy(), res, fit, scale, names, slot.copy())
+    return Bundle(family, cam, d, blocks[:, 6:npd].copy(), Rk, blocks[:, 3:6].copy(), res, fit, scale, names,
+                  slot.copy(), dict(frame_intrinsics), offsets(blocks) if fi_idx else None)
 
 
 FAMILIES = (

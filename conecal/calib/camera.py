@@ -75,18 +75,23 @@ class Camera:
         return np.stack([self.c0 + self.focal_px[0] * d[..., 0] / d[..., 2],
                          self.r0 + self.focal_px[1] * d[..., 1] / d[..., 2]], -1)
 
-    def project_jacobians(self, X) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Projections (N, 2), d/dX (N, 2, 3) px/mm and d/d(sdd, c0, r0) (N, 2, 3)."""
+    def project_jacobians(self, X, offsets=None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Projections (N, 2), d/dX (N, 2, 3) px/mm and d/d(sdd, c0, r0) (N, 2, 3).
+
+        ``offsets`` (N, 3): each point's own (sdd mm, c0 px, r0 px) added to the
+        shared ones (per-frame intrinsics; the derivatives are the same for
+        shared and offset)."""
         d = np.asarray(X, float) - self.source
-        f = self.focal_px
+        K = np.broadcast_to(self.intrinsics(), d.shape) if offsets is None else self.intrinsics() + offsets
+        fu, fv = K[:, 0] / self.pitch[0], K[:, 0] / self.pitch[1]
         iz = 1.0 / d[:, 2]
         xn, yn = d[:, 0] * iz, d[:, 1] * iz
-        p = np.stack([self.c0 + f[0] * xn, self.r0 + f[1] * yn], -1)
+        p = np.stack([K[:, 1] + fu * xn, K[:, 2] + fv * yn], -1)
         JX = np.zeros((len(d), 2, 3))
-        JX[:, 0, 0] = f[0] * iz
-        JX[:, 0, 2] = -f[0] * xn * iz
-        JX[:, 1, 1] = f[1] * iz
-        JX[:, 1, 2] = -f[1] * yn * iz
+        JX[:, 0, 0] = fu * iz
+        JX[:, 0, 2] = -fu * xn * iz
+        JX[:, 1, 1] = fv * iz
+        JX[:, 1, 2] = -fv * yn * iz
         JK = np.zeros((len(d), 2, 3))
         JK[:, 0, 0] = xn / self.pitch[0]
         JK[:, 1, 0] = yn / self.pitch[1]

@@ -105,6 +105,13 @@ def free_document(res: FreeResult, opt: FreeOptions, header: dict) -> dict:
                 out["set_aside"] = fr["set_aside"]
             if b.family.per_frame and b.distortion is not None:
                 out["distortion"] = b.frame_distortion(s).to_dict()
+            if b.frame_intrinsics:
+                units = {"sdd": "mm", "c0": "px", "r0": "px"}
+                out["intrinsics"] = {}
+                for n in ("sdd", "c0", "r0"):
+                    v, sg = b.frame_intrinsic(s, n)
+                    out["intrinsics"][n] = {"value": v, "sigma": sg, "unit": units[n]}
+                out.update(b.frame_camera(s).geometry().to_dict())
         if fr["search"].convention:
             out["convention"] = fr["search"].convention
         if "mirror_delta_chi2" in fr:
@@ -123,7 +130,8 @@ def free_document(res: FreeResult, opt: FreeOptions, header: dict) -> dict:
                      "sigma_rotation_deg": "deg (rotation vector components, lab axes)",
                      "sigma_translation_mm": "mm", "intrinsics": "sdd mm; c0, r0 px (principal point)"},
            "options": {"max_rms_px": opt.max_rms_px, "floor_factor": opt.floor_factor,
-                       "outlier_factor": opt.outlier_factor, "distortion": opt.distortion, "folds": opt.folds},
+                       "outlier_factor": opt.outlier_factor, "distortion": opt.distortion, "folds": opt.folds,
+                       "frame_intrinsics_sigma": dict(opt.frame_intrinsics)},
            "summary": {"frames": len(frames), "ok": reasons.get("ok", 0), "ambiguous": reasons.get("ambiguous", 0),
                        "rejected": reasons.get("rejected", 0),
                        "reasons": dict(Counter(f["status"] for f in frames if f["status"] != "ok")),

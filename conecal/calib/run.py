@@ -37,7 +37,9 @@ class FreeOptions:
     RMS may exceed the scan's pooled RMS by this factor; outlier_factor: a
     marker beyond this many pooled RMS is set aside; distortion: 'auto'
     (chosen on held-out markers) or a family name; folds: held-out groups;
-    mirror_chi2: a mirror pose within this chi-square of the fit ties."""
+    mirror_chi2: a mirror pose within this chi-square of the fit ties;
+    frame_intrinsics: (name, prior sigma) pairs of intrinsics freed per
+    frame (sdd mm; c0, r0 px), for a C-arm that sags between views."""
 
     max_rms_px: float = 1.0
     floor_factor: float = 2.5
@@ -46,6 +48,7 @@ class FreeOptions:
     folds: int = 5
     mirror_chi2: float = 25.0
     search: SearchOptions = SearchOptions()
+    frame_intrinsics: tuple = ()
 
 
 @dataclass
@@ -130,7 +133,8 @@ def _fit_families(fams, cam, usable, dets, shape, radius, opt):
     obs, slots = _observations(usable, dets)
     R0 = np.array([fr["search"].best.R for fr in usable])
     t0 = np.array([fr["search"].best.t for fr in usable])
-    base = adjust(family_named("none"), cam, obs, shape.points, radius, R0, t0)
+    fi = dict(opt.frame_intrinsics)
+    base = adjust(family_named("none"), cam, obs, shape.points, radius, R0, t0, frame_intrinsics=fi)
     fits = {"none": base}
     for fam in fams[1:]:
         fits[fam.name] = adjust(fam, cam, obs, shape.points, radius, R0, t0, start=base)
@@ -138,7 +142,7 @@ def _fit_families(fams, cam, usable, dets, shape, radius, opt):
     obs, kept = _regather(flexible, usable, dets, shape, radius, opt)
     idx = [slots[fr["frame"]] for fr in kept]
     R0, t0 = flexible.R[idx], flexible.t[idx]
-    fits = {"none": adjust(family_named("none"), cam, obs, shape.points, radius, R0, t0)}
+    fits = {"none": adjust(family_named("none"), cam, obs, shape.points, radius, R0, t0, frame_intrinsics=fi)}
     for fam in fams[1:]:
         # a family the data hardly constrain (a per-frame twist on an undistorted
         # detector) creeps; 30 evaluations are enough to score it
@@ -213,10 +217,10 @@ def _mirrors(b: Bundle, usable, obs: Observations, shape, radius, opt: FreeOptio
     if not shape.planar:
         return
     pooled = float(np.sqrt(np.mean(np.sum(b.residual_px ** 2, 1)) / 2))
-    cam = b.camera
     for s, fr in enumerate(usable):
         if fr["status"] != "ok":
             continue
+        cam = b.frame_camera(s)
         sel = obs.slot == s
         P = shape.points[obs.sph[sel]]
         dist = b.frame_distortion(s)

@@ -59,12 +59,12 @@ def command(result, scan, fmt, output, other_scan):
     s = load_scan(scan) if scan else None
     g, frames, T, warnings = views(result, s, other_scan=other_scan)
     geoms = per_view(g, T)
-    rows, cols = g.shape
+    rows, cols = geoms[0].shape
     if fmt == "rtk":
         from ..export.rtk import detector_origin_spacing, write_rtk_xml
 
         write_rtk_xml(output, geoms)
-        (ox, oy), (pu, pv) = detector_origin_spacing(g)
+        (ox, oy), (pu, pv) = detector_origin_spacing(geoms[0])
         info(f"wrote {output}: {len(geoms)} views (RTK XML); give RTK's projections spacing ({pu:g}, {pv:g}) and "
              f"origin ({ox:g}, {oy:g})" + "".join(f"; {w}" for w in warnings))
         return

@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import os
 from collections import Counter
+
+import numpy as np
 from pathlib import Path
 
 from .. import __version__
@@ -18,15 +20,39 @@ from .options import info, progress_bar
 POSES_FORMAT = "conecal-poses/1"
 
 
-def run_free(s, scan, mdoc, markers, geometry, output, max_rms, distortion) -> None:
+FRAME_PRIOR = {"sdd": 5.0, "c0": 5.0, "r0": 5.0}     # mm, px, px
+
+
+def parse_frame_intrinsics(text: str | None) -> tuple:
+    """``sdd,c0=3,r0=3`` -> (("sdd", 5.0), ("c0", 3.0), ("r0", 3.0)); InputError on a bad item."""
+    if not text:
+        return ()
+    out = {}
+    for item in text.split(","):
+        name, _, sig = item.strip().partition("=")
+        if name not in FRAME_PRIOR:
+            raise InputError(f"--frame-intrinsics {text}: {name!r} is not one of sdd, c0, r0")
+        try:
+            value = float(sig) if sig else FRAME_PRIOR[name]
+        except ValueError:
+            raise InputError(f"--frame-intrinsics {text}: {sig!r} is not a number (the prior sigma of {name})") from None
+        if not value > 0 or not np.isfinite(value):
+            raise InputError(f"--frame-intrinsics {text}: the prior sigma of {name} must be positive")
+        out[name] = value
+    return tuple(out.items())
+
+
+def run_free(s, scan, mdoc, markers, geometry, output, max_rms, distortion, frame_intrinsics=None) -> None:
     names = [f.name for f in FAMILIES]
+    fi = parse_frame_intrinsics(frame_intrinsics)
     if distortion != "auto" and distortion not in names:
         raise InputError(f"--distortion {distortion}: expected auto or one of {', '.join(names)}")
     g = ConeGeometry.from_dict(read_json(geometry, "conecal-geometry")) if geometry else s.nominal_geometry()
     if geometry and (abs(g.u[0] - 1) > 1e-9 or abs(g.v[1] - 1) > 1e-9 or abs(g.source[0]) + abs(g.source[1]) > 1e-9):
         raise InputError(f"{geometry}: a free-pose calibration starts from a geometry in its own frame "
                          "(source on the z axis, u = +x, v = +y); give none to start from the nominal one")
-    opt = FreeOptions(max_rms_px=max_rms if max_rms is not None else FreeOptions.max_rms_px, distortion=distortion)
+    opt = FreeOptions(max_rms_px=max_rms if max_rms is not None else FreeOptions.max_rms_px, distortion=distortion,
+                      frame_intrinsics=fi)
     with progress_bar("fit-pose (pose search)") as prog:
         res = calibrate_free(s, mdoc, g, opt, progress=prog, say=info)
     header = {"format": POSES_FORMAT, "software": f"conecal {__version__}", "scan": str(scan),
@@ -46,5 +72,10 @@ def run_free(s, scan, mdoc, markers, geometry, output, max_rms, distortion) -> N
     info(f"sdd {it['sdd']['value']:.3f} +- {it['sdd']['sigma']:.3f} mm, principal point "
          f"({it['c0']['value']:.2f} +- {it['c0']['sigma']:.2f}, {it['r0']['value']:.2f} +- {it['r0']['sigma']:.2f}) px; "
          + (f"distortion {d['family']} (up to {d['max_displacement_px']:.2f} px)" if d else "no distortion claimed"))
+    if fi:
+        per = [f["intrinsics"] for f in doc["frames"] if "intrinsics" in f]
+        spread = {n: (min(p[n]["value"] for p in per), max(p[n]["value"] for p in per)) for n, _ in fi}
+        info("per frame: " + "; ".join(f"{n} {lo:.2f} to {hi:.2f} {'mm' if n == 'sdd' else 'px'}"
+                                       for n, (lo, hi) in spread.items()))
     if res.convention:
         info(f"phantom symmetry: {res.convention}")

@@ -123,9 +123,17 @@ class PoseFrame(Doc):
     sphere_ids: list[int] | None = None
     matched: list[Annotated[list[int], Field(min_length=2, max_length=2)]] | None = None
     distortion: Distortion | None = None
+    # source and detector freed per frame (motion: free, a sagging C-arm)
+    intrinsics: dict[str, Intrinsic] | None = None
+    source: Vec3 | None = Field(None, description="this frame's X-ray source, lab mm (when freed per frame)")
+    detector: Detector | None = None
 
     @model_validator(mode="after")
     def _pose(self):
+        if (self.source is None) != (self.detector is None):
+            raise ValueError("a frame's own geometry needs both source and detector")
+        if self.source is not None:
+            source_off_detector(self.source, self.detector)
         if self.status == "ok":
             if self.R is None or self.t is None:
                 raise ValueError("an ok frame needs R and t")

@@ -29,8 +29,10 @@ def chain_from_doc(doc: dict, path) -> Chain:
         raise InputError(f"{path}: axes: {exc}") from None
 
 
-def views(result_path, scan=None, *, other_scan: bool = False) -> tuple[ConeGeometry, list[int], RigidTransform, list[str]]:
-    """The lab geometry, frame numbers, sample-to-lab transforms per view and
+def views(result_path, scan=None, *, other_scan: bool = False) -> tuple[ConeGeometry | list, list[int], RigidTransform,
+                                                                        list[str]]:
+    """The lab geometry (a list, one per view, when a poses file frees the
+    source and detector per frame), frame numbers, sample-to-lab transforms per view and
     warnings, from a ``conecal-poses/1`` file or a ``conecal-geometry/1``
     file plus its scan (whose log gives the readings): the scan RESULT was
     fitted on or, with ``other_scan``, another scan of the same system."""
@@ -51,6 +53,9 @@ def views(result_path, scan=None, *, other_scan: bool = False) -> tuple[ConeGeom
         if not ok:
             raise InputError(f"{result_path}: no frame has status ok")
         T = RigidTransform(np.array([f["R"] for f in ok]), np.array([f["t"] for f in ok]))
+        if any("detector" in f for f in ok):
+            # source and detector freed per frame (a sagging C-arm): each view its own
+            g = [ConeGeometry.from_dict(f) if "detector" in f else g for f in ok]
         return g, [int(f["frame"]) for f in ok], T, warnings
     if scan is None:
         raise InputError(f"{result_path}: a geometry file needs --scan (its log gives each view's axis readings)")
@@ -70,10 +75,11 @@ def views(result_path, scan=None, *, other_scan: bool = False) -> tuple[ConeGeom
     return g, [int(f) for f in scan.log.frame], chain.transforms(q), warnings
 
 
-def per_view(g: ConeGeometry, T: RigidTransform) -> list[ConeGeometry]:
-    """Geometry of each view in the sample frame."""
+def per_view(g: ConeGeometry | list, T: RigidTransform) -> list[ConeGeometry]:
+    """Geometry of each view in the sample frame; ``g``: the lab geometry, or one per view."""
     inv = T.inverse()
-    return [g.transformed(inv[k]) for k in range(len(T))]
+    gs = g if isinstance(g, list) else [g] * len(T)
+    return [gk.transformed(inv[k]) for k, gk in enumerate(gs)]
 
 
 def astra_vectors(geoms: list[ConeGeometry]) -> np.ndarray:

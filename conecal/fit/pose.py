@@ -444,7 +444,7 @@ def refine_geometry(geometry: ConeGeometry, poses: list[FramePose], points: np.n
         x9 = np.concatenate([np.zeros(3), x[:3], np.zeros(3)])
         J[:, :, :3] = dp.jacobian(g, X, x9)[:, :, 3:6]
         w = x[3:].reshape(nf, 6)
-        Jl = np.array([so3_left_jacobian(v) for v in w[:, :3]])[obs_f]
+        Jl = so3_left_jacobian(w[:, :3])[obs_f]
         Jrot = Jx @ (-skew(Rp) @ Jl)
         for k in range(3):
             J[np.arange(len(obs_f)), :, 3 + 6 * obs_f + k] = Jrot[:, :, k]

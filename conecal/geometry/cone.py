@@ -31,13 +31,16 @@ def _vec(a, n=3, name="vector") -> np.ndarray:
 
 
 def so3_left_jacobian(w: np.ndarray) -> np.ndarray:
-    """Left Jacobian of SO(3): ``d(exp([w]) x)/dw = -[exp([w]) x]_x J_l(w)``."""
+    """Left Jacobian of SO(3): ``d(exp([w]) x)/dw = -[exp([w]) x]_x J_l(w)``;
+    ``w`` (..., 3) rad -> (..., 3, 3)."""
     w = np.asarray(w, dtype=float)
-    th = np.linalg.norm(w)
+    th = np.linalg.norm(w, axis=-1)[..., None, None]
     K = skew(w)
-    if th < 1e-7:
-        return np.eye(3) + 0.5 * K + K @ K / 6.0
-    return (np.eye(3) + (1 - np.cos(th)) / th**2 * K + (th - np.sin(th)) / th**3 * (K @ K))
+    small = th < 1e-7
+    t = np.where(small, 1.0, th)
+    a = np.where(small, 0.5, (1 - np.cos(t)) / t**2)
+    b = np.where(small, 1.0 / 6.0, (t - np.sin(t)) / t**3)
+    return np.eye(3) + a * K + b * (K @ K)
 
 
 @dataclass(frozen=True, eq=False)

@@ -57,6 +57,26 @@ def rms_before_after(doc) -> bytes | None:
     return _png(fig)
 
 
+def frame_intrinsics(doc) -> bytes | None:
+    """sdd and principal point per frame with 1-sigma bars, when freed per frame."""
+    frames = [f for f in doc.get("frames", []) if f.get("intrinsics")]
+    if not frames:
+        return None
+    plt = _plt()
+    fig, axes = plt.subplots(1, 3, figsize=(9, 2.8))
+    shared = doc["intrinsics"]
+    for ax, (n, unit) in zip(axes, (("sdd", "mm"), ("c0", "px"), ("r0", "px"))):
+        x = [f["frame"] for f in frames]
+        ax.errorbar(x, [f["intrinsics"][n]["value"] for f in frames],
+                    [f["intrinsics"][n]["sigma"] for f in frames], fmt="o", ms=3, lw=0.8)
+        ax.axhline(shared[n]["value"], color="k", lw=0.8, ls="--", label="shared")
+        ax.set_xlabel("frame")
+        ax.set_ylabel(f"{n} ({unit})")
+    axes[0].legend(fontsize=7)
+    fig.tight_layout()
+    return _png(fig)
+
+
 def _num(v, f="{:.4g}"):
     return "–" if v is None else f.format(v)
 
@@ -101,7 +121,9 @@ def free_html(doc) -> tuple[list[str], list]:
                  "<th>σ rotation (deg; x, y, z)</th><th>σ translation (mm; x, y, z)</th></tr>"
                  + "".join(fr_rows) + "</table></details>")
     figs = [(distortion_field(doc), "Detector distortion field (colour: magnitude in px; arrows: direction)."),
-            (rms_before_after(doc), "Reprojection RMS per frame: pinhole model vs the chosen model.")]
+            (rms_before_after(doc), "Reprojection RMS per frame: pinhole model vs the chosen model."),
+            (frame_intrinsics(doc), "Intrinsics freed per frame (--frame-intrinsics): each frame's value with its "
+                                    "1σ; dashed: the shared value, the centre of the per-frame prior.")]
     return parts, figs
 
 
