@@ -351,27 +351,31 @@ def _vote(cam: Camera, P: np.ndarray, xy: np.ndarray, Rs: np.ndarray, depths, ce
     nb = int(2 * half / cell) + 2
     hyps = []
     chunk = max(1, 400000 // max(1, len(P) * len(xy)))
-    for z in depths:
-        for s0 in range(0, len(Rs), chunk):
-            Rc = Rs[s0:s0 + chunk]
-            X = np.einsum("kij,nj->kni", Rc, P)
-            pred = np.stack([f[0] * X[..., 0] / (z + X[..., 2]), f[1] * X[..., 1] / (z + X[..., 2])], -1)
-            d = xy[None, :, None, :] - pred[:, None, :, :] - [cam.c0, cam.r0]       # (k, det, sph, 2)
-            rel = d - (mid - [cam.c0, cam.r0])
-            for shift in (0.0, 0.5):
-                qc = np.floor(rel[..., 0] / cell + shift + half / cell).astype(int)
-                qr = np.floor(rel[..., 1] / cell + shift + half / cell).astype(int)
+    # in cell units, float32: the vote only needs cell indices (this loop is
+    # most of a 3-D search's time)
+    det = ((xy - mid) / cell + half / cell).astype(np.float32)                 # (det, 2)
+    for s0 in range(0, len(Rs), chunk):
+        Rc = Rs[s0:s0 + chunk]
+        X = np.einsum("kij,nj->kni", Rc, P)
+        row = (np.arange(len(Rc), dtype=np.int64) * nb * nb)[:, None, None]
+        for zi, z in enumerate(depths):
+            pred = (np.stack([f[0] * X[..., 0], f[1] * X[..., 1]], -1) / (z + X[..., 2:3]) / cell).astype(np.float32)
+            rel = det[None, :, None, :] - pred[:, None, :, :]                  # (k, det, sph, 2)
+            for si, shift in enumerate((0.0, 0.5)):
+                q = np.floor(rel + np.float32(shift)).astype(np.int32)
+                qc, qr = q[..., 0], q[..., 1]
                 okq = (qc >= 0) & (qc < nb) & (qr >= 0) & (qr < nb)
-                key = (np.arange(len(Rc))[:, None, None] * nb * nb + qc * nb + qr)[okq]
+                key = (row + (qc * nb + qr))[okq]
                 counts = np.bincount(key, minlength=len(Rc) * nb * nb).reshape(len(Rc), -1)
                 best = counts.argmax(1)
                 votes = counts[np.arange(len(Rc)), best]
-                for k in np.argsort(-votes)[:keep]:
+                for rank, k in enumerate(np.argsort(-votes)[:keep]):
                     oc = ((best[k] // nb) + 0.5 - shift) * cell - half + mid[0] - cam.c0
                     orr = ((best[k] % nb) + 0.5 - shift) * cell - half + mid[1] - cam.r0
-                    hyps.append((int(votes[k]), s0 + int(k), z, oc, orr))
-    hyps.sort(key=lambda h: -h[0])
-    return hyps
+                    hyps.append(((-int(votes[k]), zi, s0, si, rank), (int(votes[k]), s0 + int(k), z, oc, orr)))
+    # ties in the order depth, orientation, grid, rank
+    hyps.sort(key=lambda h: h[0])
+    return [h for _, h in hyps]
 
 
 def _hypothesis_pose(cam: Camera, R, z, oc, orr, pc):
