@@ -63,6 +63,8 @@ def test_bundle_jacobian_matches_finite_differences(family, frame_intrinsics):
         xm[i] -= h
         num[:, :, i] = (model(xp)[0] - model(xm)[0]) / (2 * h)
     assert np.abs(J - num).max() < 2e-4 * max(1.0, np.abs(num).max())
+    # the solver's sparse form is the same matrix
+    assert np.allclose(model(x, True, sparse=True)[1].toarray(), J.reshape(-1, x.size))
 
 
 def _truncated_grid_frame():

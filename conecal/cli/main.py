@@ -47,6 +47,12 @@ def _global_flags_first(args: list[str]) -> list[str]:
     return moved + rest + tail
 
 
+def _one_line(exc) -> str:
+    """The message on one line: a file name or value holding a line break or
+    another control character is shown escaped, as Python writes it."""
+    return "".join(c if c.isprintable() or c == " " else repr(c)[1:-1] for c in str(exc))
+
+
 class ConecalGroup(click.Group):
     def parse_args(self, ctx, args):
         return super().parse_args(ctx, _global_flags_first(args))
@@ -55,10 +61,10 @@ class ConecalGroup(click.Group):
         try:
             return super().invoke(ctx)
         except InputError as exc:
-            click.echo(f"Error: {exc}", err=True)
+            click.echo(f"Error: {_one_line(exc)}", err=True)
             sys.exit(2)
         except FitError as exc:
-            click.echo(f"Fit failed: {exc}", err=True)
+            click.echo(f"Fit failed: {_one_line(exc)}", err=True)
             sys.exit(1)
         except Terminated as exc:
             click.echo(f"Terminated by {signal.Signals(exc.signum).name}; no output was written.", err=True)
@@ -81,7 +87,7 @@ class ConecalGroup(click.Group):
         except Exception as exc:  # a bug, not the user's fault: one line unless -v
             if (ctx.obj or {}).get("verbosity", 0) > 0:
                 raise
-            click.echo(f"Error: internal error ({type(exc).__name__}: {exc}); no output was written. "
+            click.echo(f"Error: internal error ({type(exc).__name__}: {_one_line(exc)}); no output was written. "
                        f"Run with -v for the traceback and please report it.", err=True)
             sys.exit(1)
 

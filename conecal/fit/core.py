@@ -110,7 +110,8 @@ def solve(parameters: list[Parameter], residuals: Callable[[np.ndarray], np.ndar
     ``large``: for problems with hundreds of parameters (a bundle
     adjustment): no search for blind directions before and after solving
     (the problem must have no gauge freedom; a blind direction still shows
-    in the final null space and sigmas).
+    in the final null space and sigmas); ``jacobian`` may then return a
+    scipy.sparse matrix (a bundle's, mostly zeros).
     ``covariance=False`` skips that too (sigma, correlation: nan), for fits
     whose only use is their prediction (held-out scores).
     """
@@ -138,8 +139,11 @@ def solve(parameters: list[Parameter], residuals: Callable[[np.ndarray], np.ndar
         history.append(float(r @ r))     # chi^2 per evaluation: the report's convergence plot
         return r
 
+    all_free = bool(free.all())
+
     def jac(xf):
-        return jacobian(full(xf))[:, free]
+        J = jacobian(full(xf))
+        return J if all_free else J[:, free]
 
     r0 = fun(start)
     if r0.size < free.sum():
@@ -194,7 +198,7 @@ def solve(parameters: list[Parameter], residuals: Callable[[np.ndarray], np.ndar
     r = fun(res.x)
     J = jac(res.x)
     outliers = np.abs(r) > f_scale if loss != "linear" else np.zeros(r.size, bool)
-    Jin = J[~outliers]
+    Jin = J[~outliers] if outliers.any() else J
     rin = r[~outliers]
     chi2 = float(rin @ rin)
     dof = int(rin.size - free.sum())
@@ -205,11 +209,11 @@ def solve(parameters: list[Parameter], residuals: Callable[[np.ndarray], np.ndar
                          njev=int(res.njev or 0), outliers=outliers, undetermined=[], null_combinations=[],
                          success=bool(res.status > 0), message=str(res.message), units=[p.unit for p in parameters])
     # null space in the parameters' natural scales
-    Js = Jin * scale
+    Js = _scaled(Jin, scale)
     if large:
         # many parameters, few of them coupled: the normal matrix's eigenvectors
         # (s^2) are 5-10x cheaper than the SVD of J and as good at this conditioning
-        ev, V = np.linalg.eigh(Js.T @ Js)
+        ev, V = np.linalg.eigh(_dense(Js.T @ Js))
         order = np.argsort(ev)[::-1]
         s, Vt = np.sqrt(np.clip(ev[order], 0, None)), V[:, order].T
     else:
@@ -257,6 +261,10 @@ def solve(parameters: list[Parameter], residuals: Callable[[np.ndarray], np.ndar
                      hessian=res.hessian / np.outer(scale, scale) if hessian == "numerical" else None)
 
 
+# Levenberg-Marquardt: the damping's fall after a step that lowered the cost
+_LM_SHRINK = 10.0
+
+
 def _levenberg_marquardt(fun, jac, x0, scale, max_nfev, tol, lo=None, hi=None):
     """Plain Levenberg-Marquardt on the normal equations (Cholesky), in the
     parameters' scales: for ``large`` problems, where an SVD of J per
@@ -272,10 +280,10 @@ def _levenberg_marquardt(fun, jac, x0, scale, max_nfev, tol, lo=None, hi=None):
     cost = 0.5 * float(r @ r)
     lam, nfev, njev, status, msg = 1e-3, 1, 0, 0, "maximum evaluations"
     while nfev < max_nfev:
-        J = jac(x) * scale
+        J = _scaled(jac(x), scale)
         njev += 1
         g = J.T @ r
-        H = J.T @ J
+        H = _dense(J.T @ J)
         d = np.maximum(np.diag(H), 1e-12 * max(np.diag(H).max(), 1e-300))
         # a parameter resting on a bound that the gradient pushes beyond is held for this step
         held = np.zeros(len(x), bool) if lo is None else (((x <= lo) & (g > 0)) | ((x >= hi) & (g < 0)))
@@ -306,7 +314,7 @@ def _levenberg_marquardt(fun, jac, x0, scale, max_nfev, tol, lo=None, hi=None):
             if np.isfinite(cost_new) and cost_new < cost:
                 small = cost - cost_new <= tol * cost or np.linalg.norm(step) <= tol * (np.linalg.norm(x / scale) + tol)
                 x, r, cost = x_new, r_new, cost_new
-                lam = max(lam / 5, 1e-9)
+                lam = max(lam / _LM_SHRINK, 1e-9)
                 if small:
                     status, msg = 2, "cost or step below tolerance"
                 break
@@ -318,6 +326,20 @@ def _levenberg_marquardt(fun, jac, x0, scale, max_nfev, tol, lo=None, hi=None):
             break
     return SimpleNamespace(x=x, cost=cost, nfev=nfev, njev=njev, status=status if status else 0, message=msg,
                            hessian=None)
+
+
+def _scaled(J, scale):
+    """J with its columns multiplied by ``scale``; J dense or scipy-sparse (a
+    bundle adjustment's Jacobian, mostly zeros: only the ``large`` path takes it)."""
+    if isinstance(J, np.ndarray):
+        return J * scale
+    from scipy import sparse
+
+    return sparse.csr_matrix(J @ sparse.diags(scale))
+
+
+def _dense(M):
+    return M if isinstance(M, np.ndarray) else M.toarray()
 
 
 def robust_loss(z, loss: str):

@@ -132,6 +132,32 @@ class Distortion:
         z = np.zeros_like(mono)
         return np.stack([np.concatenate([mono, z], -1), np.concatenate([z, mono], -1)], -2)
 
+    def basis_gradient(self, xy) -> np.ndarray:
+        """(..., 2, n, 2): d basis / d position (per px); the displacement's
+        gradient is this contracted with the coefficients, and its derivative
+        by the centre is minus that."""
+        d = self._normalised(xy)
+        x, y = d[..., 0], d[..., 1]
+        z = np.zeros_like(x)
+        if self.model == "radial_tangential":
+            r2 = x * x + y * y
+            cols = []
+            for n in (1, 2, 3):
+                rn, rm = r2 ** n, n * r2 ** (n - 1)
+                cols.append([[rn + 2 * x * x * rm, 2 * x * y * rm], [2 * x * y * rm, rn + 2 * y * y * rm]])
+            cols.append([[6 * x, 2 * y], [2 * y, 2 * x]])                       # p1
+            cols.append([[2 * y, 2 * x], [2 * x, 6 * y]])                       # p2
+            cols.append([[-2 * x * y, -(r2 + 2 * y * y)], [r2 + 2 * x * x, 2 * x * y]])   # s
+            # cols[term][component][d/dx, d/dy] -> (..., 2 components, n terms, 2 derivatives)
+            g = np.stack([np.stack([np.stack(c[k], -1) for c in cols], -2) for k in range(2)], -3)
+            return g / self.radius
+        terms = poly_terms(int(self.degree))
+        dx = np.stack([i * x ** max(i - 1, 0) * y ** j if i else z for i, j in terms], -1)
+        dy = np.stack([j * x ** i * y ** max(j - 1, 0) if j else z for i, j in terms], -1)
+        mono = np.stack([dx, dy], -1)                                          # (..., m, 2)
+        zero = np.zeros_like(mono)
+        return np.stack([np.concatenate([mono, zero], -2), np.concatenate([zero, mono], -2)], -3) / self.radius
+
     def displacement(self, xy) -> np.ndarray:
         """``(dc, dr)`` (..., 2) px at ideal positions ``xy`` (..., 2) px."""
         return self.basis(xy) @ np.asarray(self.coefficients)
@@ -150,17 +176,9 @@ class Distortion:
             x = xy - self.displacement(x)
         return x
 
-    def centre_jacobian(self, xy, eps: float = 1e-3) -> np.ndarray:
-        """(..., 2, 2) d displacement / d centre (px/px), by central differences."""
-        out = []
-        for k in range(2):
-            c = np.array(self.centre)
-            c[k] += eps
-            hi = self.with_coefficients(self.coefficients, tuple(c)).displacement(xy)
-            c[k] -= 2 * eps
-            lo = self.with_coefficients(self.coefficients, tuple(c)).displacement(xy)
-            out.append((hi - lo) / (2 * eps))
-        return np.stack(out, -1)
+    def centre_jacobian(self, xy) -> np.ndarray:
+        """(..., 2, 2) d displacement / d centre (px/px)."""
+        return -np.einsum("...inj,n->...ij", self.basis_gradient(xy), np.asarray(self.coefficients))
 
     def field(self, shape) -> tuple[np.ndarray, np.ndarray]:
         """``dc, dr`` (rows, cols) float32 px at every pixel centre of the ideal image."""
