@@ -36,7 +36,7 @@ from pathlib import Path
 import numpy as np
 
 from conecal.consistency import rpgrid
-from conecal.consistency.misalignment import NAMES, misaligned
+from conecal.geometry.misalignment import NAMES, misaligned
 from conecal.export import per_view
 from conecal.scan import load_scan
 from conecal.simulate import write_scan

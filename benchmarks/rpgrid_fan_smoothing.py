@@ -31,7 +31,7 @@ import numpy as np
 from scipy.optimize import least_squares
 
 from conecal.consistency import rpgrid
-from conecal.consistency.misalignment import NAMES, misaligned
+from conecal.geometry.misalignment import NAMES, misaligned
 from conecal.scan import load_scan
 from conecal.simulate import write_scan
 from conecal.simulate.scenarios import circular_scan

@@ -27,7 +27,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 import bench_rpgrid as B  # noqa: E402
 
 from conecal.consistency import rpgrid  # noqa: E402
-from conecal.consistency.misalignment import NAMES  # noqa: E402
+from conecal.geometry.misalignment import NAMES  # noqa: E402
 from conecal.scan import load_scan  # noqa: E402
 
 

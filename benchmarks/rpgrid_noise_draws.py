@@ -23,7 +23,7 @@ from pathlib import Path
 import numpy as np
 
 from conecal.consistency import rpgrid
-from conecal.consistency.misalignment import NAMES, misaligned
+from conecal.geometry.misalignment import NAMES, misaligned
 from conecal.scan import load_scan
 from conecal.simulate import write_scan
 from conecal.simulate.scenarios import circular_scan

@@ -14,7 +14,8 @@ from conecal.calib.bundle import FAMILIES, Observations, adjust, family_named
 from conecal.calib.camera import Camera
 from conecal.calib.phantom import describe_phantom
 from conecal.calib.run import calibrate_free
-from conecal.calib.search import homography, pose_from_homography, search_frame
+from conecal.calib.lattice import homography, pose_from_homography
+from conecal.calib.search import search_frame
 from conecal.cli.main import cli
 from conecal.geometry import ConeGeometry, rotvec_to_matrix
 from conecal.geometry.distortion import Distortion

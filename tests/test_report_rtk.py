@@ -12,7 +12,7 @@ import pytest
 from click.testing import CliRunner
 
 from conecal.cli.main import cli
-from conecal.consistency.misalignment import misaligned
+from conecal.geometry.misalignment import misaligned
 from conecal.export import per_view, projection_matrices
 from conecal.geometry import ConeGeometry
 

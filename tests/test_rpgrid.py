@@ -9,7 +9,7 @@ from click.testing import CliRunner
 
 from conecal.cli.main import cli
 from conecal.consistency import kernels, rpgrid
-from conecal.consistency.misalignment import NAMES, misaligned
+from conecal.geometry.misalignment import NAMES, misaligned
 from conecal.geometry import ConeGeometry
 
 

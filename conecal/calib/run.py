@@ -28,7 +28,8 @@ from .bundle import FAMILIES, Bundle, Observations, adjust, family_named
 from .camera import Camera
 from .choose import choose_family
 from .phantom import describe_phantom
-from .search import SearchOptions, assign, refine_pose, search_frame
+from .candidate import assign, refine_pose
+from .search import SearchOptions, search_frame
 
 
 @dataclass(frozen=True)

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import click
 
-from ..consistency.misalignment import NAMES
+from ..geometry.misalignment import NAMES
 from ..consistency.rpgrid import DEFAULT_RANGES, RPOptions, document, run
 from ..errors import FitError, InputError
 from ..scan import load_scan

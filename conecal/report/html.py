@@ -173,7 +173,7 @@ def _diagnosis_section(path, doc) -> tuple[str, int]:
 def reconstruction_figure(doc, path) -> tuple[bytes, dict] | None:
     """FDK (itk-rtk) of the scan behind an rp-grid result, nominal vs corrected:
     central slices and their sharpness. None when not possible here."""
-    from ..consistency.misalignment import NAMES, misaligned
+    from ..geometry.misalignment import NAMES, misaligned
     from ..errors import InputError
     from ..scan import load_scan
 

@@ -13,10 +13,10 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 
 from ..effects import World
-from ..geometry import ConeGeometry, RigidTransform, axis_angle, rotvec_to_matrix
+from ..geometry import ConeGeometry, RigidTransform, rotvec_to_matrix
+from ..geometry.misalignment import misaligned
 from ..geometry.sphere import shadow_centroid, shadow_diameter_px
 from ..kinematics import Chain, DHRobot, LinearAxis, RotaryAxis
-from ..consistency.misalignment import misaligned
 from .render import Cylinder, Ellipsoid, Sphere
 
 KINDS = ("linear", "rotation", "robot", "circular", "free")
@@ -341,7 +341,7 @@ def circular_scan(seed=0, *, rows=256, cols=256, pitch=0.4, sod=300.0, sdd=600.0
     and v (px), in-plane rotation ``eta`` about the detector normal, and
     tilts ``theta`` about u and ``phi`` about v (deg), all about the
     detector centre. ``rotation_deg = (eta, theta, phi)`` (see
-    :mod:`conecal.consistency.misalignment`). ``truncation``: ``"axial"``
+    :mod:`conecal.geometry.misalignment`). ``truncation``: ``"axial"``
     makes the object taller than the detector sees, ``"transaxial"`` wider.
     """
     rng = np.random.default_rng(seed)

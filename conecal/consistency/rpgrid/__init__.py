@@ -61,7 +61,7 @@ sets it in the stage modules too, as it did when they were one module.
 
 from __future__ import annotations
 
-from ..misalignment import NAMES, UNITS
+from ...geometry.misalignment import NAMES, UNITS
 from ..radon import KERNEL_REACH
 from . import cost, options, pipeline, planes, search, sigma, tables  # noqa: F401  (rpgrid.sigma etc.)
 from .cost import RPProblem

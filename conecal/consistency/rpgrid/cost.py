@@ -15,7 +15,7 @@ import numpy as np
 
 from ...geometry import ConeGeometry
 from .. import kernels
-from ..misalignment import misaligned
+from ...geometry.misalignment import misaligned
 from .options import RPOptions, _lookup
 from .planes import _Frame, _frame, _Planes, _PlaneSample
 from .tables import ViewTables

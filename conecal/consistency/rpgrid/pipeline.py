@@ -17,7 +17,7 @@ from dataclasses import replace
 import numpy as np
 
 from ...errors import FitError, InputError
-from ..misalignment import NAMES, UNITS, misaligned
+from ...geometry.misalignment import NAMES, UNITS, misaligned
 from .cost import RPProblem
 from .options import RPOptions
 from .search import grid_search, refine, restart_along_v

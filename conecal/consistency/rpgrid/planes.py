@@ -22,7 +22,7 @@ import numpy as np
 
 from ...errors import FitError, InputError
 from ...geometry import ConeGeometry
-from ..misalignment import misaligned
+from ...geometry.misalignment import misaligned
 from ..radon import KERNEL_REACH
 from .options import FAN_STEP_DEG
 

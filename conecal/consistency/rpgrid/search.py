@@ -13,7 +13,7 @@ import contextlib
 
 import numpy as np
 
-from ..misalignment import NAMES, UNITS
+from ...geometry.misalignment import NAMES, UNITS
 from .cost import RPProblem
 from .options import RPOptions
 from ...stats import mad_sigma

@@ -16,7 +16,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from ..misalignment import NAMES
+from ...geometry.misalignment import NAMES
 from .cost import RPProblem
 from .options import RPOptions
 from .search import F_SCALE, _bilinear, _parameters, _solve
