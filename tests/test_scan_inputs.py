@@ -115,6 +115,13 @@ def test_negative_pitch(scan_copy, tmp_path):
     assert_input_error(run_detect(scan_copy, tmp_path), "scan.yaml", "detector.pixel_pitch.0")
 
 
+@pytest.mark.parametrize("pitch,words", [([1.4e306, 0.2], "pixel_pitch is in mm"), ([1e-177, 0.2], "below 0.1 micrometre")])
+def test_absurd_pitch_is_bad_input_not_a_crash(scan_copy, tmp_path, pitch, words):
+    # found by the fuzz test: the corner sat at -inf, or the shadow was 1e178 px wide
+    edit_yaml(scan_copy, lambda c: c["detector"].__setitem__("pixel_pitch", pitch))
+    assert_input_error(run_detect(scan_copy, tmp_path), "scan.yaml", "detector", words)
+
+
 def test_unknown_key(scan_copy, tmp_path):
     edit_yaml(scan_copy, lambda c: c["nominal"].__setitem__("sid", 3))
     assert_input_error(run_detect(scan_copy, tmp_path), "scan.yaml", "nominal.sid", "unknown key")

@@ -18,9 +18,13 @@ from .track import track
 MARKERS_FORMAT = "conecal-markers/1"
 
 _WORKER = None
+_ABORT = None          # a multiprocessing Event: set, the queued frames are skipped
 
 
 def _run_worker(k):
+    # after an error or an interrupt the queued frames end at once (see measure_frames)
+    if _ABORT is not None and _ABORT.is_set():
+        return None
     return _WORKER(k)
 
 
@@ -51,6 +55,12 @@ def options_for_scan(scan: Scan, *, threshold: float = 10.0, blur_px: float = 1.
         m = cfg.nominal.sdd / cfg.nominal.sod
         pitch = float(np.sqrt(cfg.detector.pixel_pitch[0] * cfg.detector.pixel_pitch[1]))
         px = [d * m / pitch for d in ds]
+        size = max(cfg.detector.rows, cfg.detector.cols)
+        if not all(np.isfinite(px)) or max(px) > size or min(px) < 0.5:
+            from ..errors import InputError
+            raise InputError(f"{scan.root / 'scan.yaml'}: markers.diameter: a {max(ds):g} mm sphere casts a "
+                             f"{max(px):.3g} px shadow at pixel pitch {pitch:g} mm and magnification {m:.3g} "
+                             f"(expected 0.5 px to the detector's {size} px; give --diameter-px to override)")
         diameter_px = (0.6 * min(px), 1.6 * max(px))
     return DetectOptions(diameter_px=tuple(float(d) for d in diameter_px), threshold=threshold, blur_px=blur_px)
 
@@ -141,22 +151,30 @@ def measure_frames(scan: Scan, opt: DetectOptions, frames_idx: list[int], *, wor
     if workers > 1 and "fork" in mp.get_all_start_methods():
         # Processes, not threads: the per-marker work is many small numpy calls
         # that hold the GIL. Forked workers inherit the open scan.
-        global _WORKER
+        global _WORKER, _ABORT
         _WORKER = one
         kernels.warm_up()
         ctx = mp.get_context("fork")
-        # Pool, not ProcessPoolExecutor: leaving the block on any exception
-        # (an error, Ctrl-C, SIGTERM) terminates the workers instead of
-        # waiting for every queued frame.
+        # On any exception (an error in a frame, Ctrl-C, SIGTERM) the queued
+        # frames are skipped and the workers end after the frame in hand;
+        # they are not killed: Pool.terminate() kills a worker that may be
+        # holding the result queue's lock, and then hangs on that lock
+        # (seen under the fuzz test).
+        _ABORT = ctx.Event()
+        pool = ctx.Pool(workers, initializer=_worker_init)
         try:
-            with ctx.Pool(workers, initializer=_worker_init) as pool:
-                chunk = max(1, min(16, len(frames_idx) // (4 * workers)))
-                for n, res in enumerate(pool.imap(_run_worker, frames_idx, chunksize=chunk), 1):
-                    results.append(res)
-                    if progress:
-                        progress(n, len(frames_idx))
+            chunk = max(1, min(16, len(frames_idx) // (4 * workers)))
+            for n, res in enumerate(pool.imap(_run_worker, frames_idx, chunksize=chunk), 1):
+                results.append(res)
+                if progress:
+                    progress(n, len(frames_idx))
+        except BaseException:
+            _ABORT.set()
+            raise
         finally:
-            _WORKER = None
+            pool.close()
+            pool.join()
+            _WORKER = _ABORT = None
     else:
         for n, k in enumerate(frames_idx, 1):
             results.append(one(k))

@@ -32,6 +32,18 @@ class DetectorSpec(_Model):
     cols: Annotated[int, Field(gt=0)]
     pixel_pitch: tuple[PositiveFloat, PositiveFloat]
 
+    @model_validator(mode="after")
+    def _size(self):
+        # (a pitch of 1e306 mm passed the positive-number check, and the
+        # detector's corner then sat at -inf)
+        if min(self.pixel_pitch) < 1e-4:
+            raise ValueError(f"pixel_pitch {list(self.pixel_pitch)}: below 0.1 micrometre; pixel_pitch is in mm")
+        width, height = self.cols * self.pixel_pitch[0], self.rows * self.pixel_pitch[1]
+        if max(width, height) > 1e4:
+            raise ValueError(f"pixel_pitch {list(self.pixel_pitch)} makes the detector {width:.3g} x {height:.3g} mm; "
+                             "pixel_pitch is in mm (a detector is at most a few hundred mm across)")
+        return self
+
 
 class NominalSpec(_Model):
     sod: PositiveFloat
@@ -40,6 +52,8 @@ class NominalSpec(_Model):
 
     @model_validator(mode="after")
     def _order(self):
+        if self.sdd > 1e5:
+            raise ValueError(f"sdd {self.sdd} mm is over 100 m; sdd and sod are in mm")
         if self.sdd <= self.sod:
             raise ValueError(f"sdd ({self.sdd}) must exceed sod ({self.sod}): the object sits between source and detector")
         return self
