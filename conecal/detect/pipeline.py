@@ -156,24 +156,32 @@ def measure_frames(scan: Scan, opt: DetectOptions, frames_idx: list[int], *, wor
         kernels.warm_up()
         ctx = mp.get_context("fork")
         # On any exception (an error in a frame, Ctrl-C, SIGTERM) the queued
-        # frames are skipped and the workers end after the frame in hand;
-        # they are not killed: Pool.terminate() kills a worker that may be
-        # holding the result queue's lock, and then hangs on that lock
-        # (seen under the fuzz test).
+        # frames are cancelled or skipped and the workers end after the frame
+        # in hand; they are never killed. (multiprocessing.Pool hung twice
+        # under the fuzz test: terminate() killed a worker holding the result
+        # queue's lock, and a worker that died mid-frame left imap waiting for
+        # ever; the executor reports a dead worker instead.)
+        from concurrent.futures import ProcessPoolExecutor
+        from concurrent.futures.process import BrokenProcessPool
+
         _ABORT = ctx.Event()
-        pool = ctx.Pool(workers, initializer=_worker_init)
+        ex = ProcessPoolExecutor(workers, mp_context=ctx, initializer=_worker_init)
         try:
             chunk = max(1, min(16, len(frames_idx) // (4 * workers)))
-            for n, res in enumerate(pool.imap(_run_worker, frames_idx, chunksize=chunk), 1):
+            for n, res in enumerate(ex.map(_run_worker, frames_idx, chunksize=chunk), 1):
                 results.append(res)
                 if progress:
                     progress(n, len(frames_idx))
+        except BrokenProcessPool:
+            _ABORT.set()
+            from ..errors import FitError
+            raise FitError("a detect worker process died (killed, or out of memory); no output was written. "
+                           "Run with --workers 1 to see where") from None
         except BaseException:
             _ABORT.set()
             raise
         finally:
-            pool.close()
-            pool.join()
+            ex.shutdown(wait=True, cancel_futures=True)
             _WORKER = _ABORT = None
     else:
         for n, k in enumerate(frames_idx, 1):
