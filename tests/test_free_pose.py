@@ -288,3 +288,20 @@ def test_cli_frame_intrinsics_writes_each_frames_geometry(tmp_path):
         r = run(cli, ["fit-pose", str(d), "--markers", str(tmp_path / "m.json"), "-o", str(tmp_path / "q.json"),
                       "--frame-intrinsics", bad])
         assert r.exit_code == 2 and words in r.output, r.output
+
+
+def test_a_sphere_behind_another_is_reported_hidden_not_missing():
+    from conecal.geometry.sphere import hidden_behind
+
+    g = ConeGeometry.nominal(sod=600.0, sdd=1000.0, shape=SHAPE, pixel_pitch=(0.45, 0.45))
+    # on one ray from the source: 1 hides behind 2 (0.3 shadow radii apart); 3 is clear; 4 is off the detector
+    ray = np.array([0.02, 0.01, 1.0])
+    src = np.asarray(g.source, float)
+    c2 = src + ray * 600.0
+    c1 = src + ray * 640.0 + [0.2, 0.0, 0.0]
+    pts = np.array([c1, c2, c2 + [20.0, 0, 0], c2 + [500.0, 0, 0]])
+    ids = [1, 2, 3, 4]
+    assert hidden_behind(g, pts, 1.0, [False, True, True, False], ids) == [[1, 2]]
+    # seen, it is no longer hidden; a sphere far from every shadow is missing, not hidden
+    assert hidden_behind(g, pts, 1.0, [True, True, True, False], ids) == []
+    assert hidden_behind(g, pts, 1.0, [True, True, False, False], ids) == []

@@ -19,6 +19,7 @@ from collections import Counter
 import numpy as np
 
 from ..geometry import matrix_to_rotvec
+from ..geometry.sphere import hidden_behind
 from .bundle import Bundle
 from .run import FreeOptions, FreeResult
 
@@ -103,6 +104,12 @@ def free_document(res: FreeResult, opt: FreeOptions, header: dict) -> dict:
             out["matched"] = [[int(i), int(res.shape.ids[j])] for i, j in zip(d, p)]
             if fr.get("set_aside"):
                 out["set_aside"] = fr["set_aside"]
+            seen = np.zeros(len(res.shape.points), bool)
+            seen[np.asarray(p, int)] = True
+            hidden = hidden_behind(b.frame_camera(s).geometry(), res.shape.points @ R.T + t, res.shape.radius, seen,
+                                   res.shape.ids)
+            if hidden:
+                out["hidden"] = hidden
             if b.family.per_frame and b.distortion is not None:
                 out["distortion"] = b.frame_distortion(s).to_dict()
             if b.frame_intrinsics:

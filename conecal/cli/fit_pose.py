@@ -134,6 +134,8 @@ def command(scan, markers, geometry, output, max_rms, prior_mm, prior_deg, initi
             fr.update({"sigma_rotation_deg": p.sigma_rotation_deg, "sigma_translation_mm": p.sigma_translation_mm,
                        "rms_px": p.rms_px, "n_spheres": p.n_spheres, "sphere_ids": p.ids, "placement_error": pe,
                        "found_by": p.found_by})
+            if p.hidden:
+                fr["hidden"] = p.hidden
         frames.append(fr)
     frames = rounded(frames)   # totals from the rounded frames: a merge of parts computes the same
     totals = rounded(poses_totals(frames))

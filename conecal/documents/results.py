@@ -122,6 +122,8 @@ class PoseFrame(Doc):
     rms_px: MaybeFinite = None
     sphere_ids: list[int] | None = None
     matched: list[Annotated[list[int], Field(min_length=2, max_length=2)]] | None = None
+    hidden: list[Annotated[list[int], Field(min_length=2, max_length=2)]] | None = Field(
+        None, description="[sphere id, id of the sphere whose shadow hides it]: not measurable, not missing")
     distortion: Distortion | None = None
     # source and detector freed per frame (motion: free, a sagging C-arm)
     intrinsics: dict[str, Intrinsic] | None = None

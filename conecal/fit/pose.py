@@ -29,7 +29,7 @@ from scipy.optimize import least_squares, linear_sum_assignment
 from ..geometry import ConeGeometry, RigidTransform, matrix_to_rotvec, rotvec_to_matrix
 from ..geometry.cone import so3_left_jacobian
 from ..geometry.rotations import skew
-from ..geometry.sphere import shadow_bias
+from ..geometry.sphere import hidden_behind, shadow_bias
 from .core import Parameter, solve
 
 
@@ -65,6 +65,7 @@ class FramePose:
     ids: list = field(default_factory=list)
     residual_px: np.ndarray | None = None
     found_by: str = "log"          # where the fit started: the log, or the pattern search
+    hidden: list = field(default_factory=list)   # [id, id hiding it] (geometry.sphere.hidden_behind)
 
 
 class PoseProblem:
@@ -256,6 +257,9 @@ def fit_frame(frame: int, geometry: ConeGeometry, points: np.ndarray, ids: np.nd
     R, t = prob.transform(x)
     sd = res.sigma
     out = FramePose(frame, "ok", R, t, np.degrees(sd[:3]), sd[3:], rms, n, [int(ids[i]) for i in r], resid)
+    seen = np.zeros(len(points), bool)
+    seen[r] = True
+    out.hidden = hidden_behind(geometry, points @ R.T + t, radius, seen, ids)
     if rms > opt.max_rms_px:
         out.status = f"rejected: reprojection RMS {rms:.3f} px above {opt.max_rms_px} px"
     return out

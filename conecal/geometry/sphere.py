@@ -101,3 +101,27 @@ def shadow_diameter_px(geometry: ConeGeometry, centre, radius: float) -> np.ndar
     """Approximate shadow diameter in px (2 * radius * magnification / pitch)."""
     m = geometry.magnification(centre)
     return 2 * radius * m / np.sqrt(geometry.pixel_pitch[0] * geometry.pixel_pitch[1])
+
+
+def hidden_behind(geometry: ConeGeometry, centres, radius: float, seen, ids) -> list[list[int]]:
+    """``[[id, id of the sphere hiding it], ...]``: spheres (``centres`` (n, 3)
+    lab mm, ``radius`` mm) not ``seen`` whose shadow centre falls on the
+    detector inside another sphere's shadow: their shadows overlap by more
+    than half, and no detector can measure them apart (reported as hidden,
+    not missing). The other may be unseen too (a deep pair measured as
+    neither: each is listed in the other's shadow); when it was seen, its
+    measured centre may hold some of the hidden one's shadow."""
+    centres = np.asarray(centres, float)
+    seen = np.asarray(seen, bool)
+    pred = geometry.project(centres)
+    half = shadow_diameter_px(geometry, centres, radius) / 2
+    rows, cols = geometry.shape
+    on = (pred[:, 0] >= 0) & (pred[:, 0] <= cols - 1) & (pred[:, 1] >= 0) & (pred[:, 1] <= rows - 1)
+    out = []
+    for i in np.flatnonzero(~seen & on):
+        d = np.hypot(*(pred - pred[i]).T)
+        d[i] = np.inf
+        j = int(np.argmin(d - half))
+        if d[j] < half[j]:
+            out.append([int(ids[i]), int(ids[j])])
+    return out
