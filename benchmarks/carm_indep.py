@@ -7,8 +7,8 @@ import json
 import pathlib
 
 import numpy as np
-import tifffile
-import yaml
+
+from carm_files import write_free_scan
 from scipy.spatial.transform import Rotation
 
 CASES = ["grid_ii", "grid_brown", "grid_none", "ball_ii"]
@@ -160,19 +160,8 @@ def make_case(name, seed, out):
         hp = distort(project(H @ R.T + t, sdd, pp), k)
         heldout.append({"frame": k, "points": H.tolist(), "pixels": hp.tolist()})
 
-    scan = {"format": "conecal-scan/1", "motion": "free", "projections": "projections.tif",
-            "values": "attenuation", "log": "log.csv",
-            "detector": {"rows": ROWS, "cols": COLS, "pixel_pitch": [PITCH, PITCH]},
-            "nominal": {"sod": SOD, "sdd": 1000.0},
-            "markers": {"diameter": 2 * RADIUS, "phantom": "phantom.csv"}}
-    (out / "scan" / "scan.yaml").write_text(yaml.safe_dump(scan, sort_keys=False))
-    (out / "scan" / "phantom.csv").write_text(
-        "id,x,y,z\n" + "".join(f"{i},{x:.6f},{y:.6f},{z:.6f}\n" for i, x, y, z in phantom))
-    (out / "scan" / "log.csv").write_text(
-        "frame,time\n" + "".join(f"{k},{2.0 * k:.1f}\n" for k in range(NFRAMES)))
-    tifffile.imwrite(out / "scan" / "projections.tif",
-                     np.zeros((NFRAMES, ROWS, COLS), np.float32), photometric="minisblack")
-    (out / "markers.json").write_text(json.dumps({"format": "conecal-markers/1", "frames": frames}, sort_keys=True))
+    write_free_scan(out, rows=ROWS, cols=COLS, pitch=PITCH, sod=SOD, sdd=1000.0, diameter=2 * RADIUS,
+                    phantom=phantom, frames=frames)
     dp = {k: (v if k != "s_frame" else [v[i] for i in range(NFRAMES)]) for k, v in dparams.items()}
     truth = {"sdd": sdd, "principal_point": pp.tolist(), "source": [0.0, 0.0, -SOD], "poses": poses,
              "sigma_px": sigma, "ids_per_frame": id_lists, "heldout": heldout,

@@ -19,8 +19,8 @@ import json
 import pathlib
 
 import numpy as np
-import tifffile
-import yaml
+
+from carm_files import write_free_scan
 from scipy.spatial.transform import Rotation
 
 CASES = ["ball_sag", "ball_sag_ii", "grid_sag", "ball_nosag"]
@@ -204,19 +204,8 @@ def make_case(name, seed, out):
         geo.append(f)
         angles.append([a, b])
 
-    scan = {"format": "conecal-scan/1", "motion": "free", "projections": "projections.tif",
-            "values": "attenuation", "log": "log.csv",
-            "detector": {"rows": ROWS, "cols": COLS, "pixel_pitch": [pitch, pitch]},
-            "nominal": {"sod": SOD, "sdd": SDD_NOMINAL},
-            "markers": {"diameter": 2 * RADIUS, "phantom": "phantom.csv"}}
-    (out / "scan" / "scan.yaml").write_text(yaml.safe_dump(scan, sort_keys=False))
-    (out / "scan" / "phantom.csv").write_text(
-        "id,x,y,z\n" + "".join(f"{i},{x:.6f},{y:.6f},{z:.6f}\n" for i, x, y, z in phantom))
-    (out / "scan" / "log.csv").write_text(
-        "frame,time\n" + "".join(f"{k},{2.0 * k:.1f}\n" for k in range(NFRAMES)))
-    tifffile.imwrite(out / "scan" / "projections.tif",
-                     np.zeros((NFRAMES, ROWS, COLS), np.float32), photometric="minisblack")
-    (out / "markers.json").write_text(json.dumps({"format": "conecal-markers/1", "frames": frames}, sort_keys=True))
+    write_free_scan(out, rows=ROWS, cols=COLS, pitch=pitch, sod=SOD, sdd=SDD_NOMINAL, diameter=2 * RADIUS,
+                    phantom=phantom, frames=frames)
     fsdd = [f["sdd"] for f in geo]
     fpp = [f["pp"].tolist() for f in geo]
     truth = {"sdd": float(np.mean(fsdd)), "principal_point": np.mean(fpp, 0).tolist(), "source": [0.0, 0.0, -SOD],

@@ -23,6 +23,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import numpy as np
+from scipy import sparse as sp
 
 from ..geometry import rotvec_to_matrix
 from ..geometry.cone import so3_left_jacobian
@@ -30,7 +31,7 @@ from ..geometry.distortion import Distortion, default_radius, detector_centre
 from ..geometry.rotations import skew
 from ..geometry.sphere import shadow_bias
 from ..fit.core import FitResult, Parameter, solve
-from .camera import INTRINSICS, Camera
+from .camera import INTRINSIC_UNITS, INTRINSICS, Camera
 
 POSE = ("rx", "ry", "rz", "tx", "ty", "tz")
 
@@ -117,7 +118,7 @@ class Bundle:
         """Measured position (N, 2) px of phantom points (N, 3) in frames ``slot``;
         with ``radius`` (mm) the sphere shadow's centroid, else the point's."""
         X = np.einsum("nij,nj->ni", self.R[slot], points) + self.t[slot]
-        q = self.camera.project_jacobians(X, None if self.offsets is None else self.offsets[slot])[0]
+        q = self.camera.project(X, None if self.offsets is None else self.offsets[slot])
         if radius:
             q = q + shadow_bias(self.camera.geometry(), X, radius, coarse=True)
         return _distort(self, q, slot)
@@ -220,7 +221,7 @@ def adjust(family: Family, camera: Camera, obs: Observations, points: np.ndarray
         values += [0, 0, 0, *t0[k]] + list(per[k]) + list(off[k, fi_idx])
         scales += [1e-3, 1e-3, 1e-3, 0.01, 0.01, 0.01] + [0.1] * len(family.per_frame) + [0.1] * len(fi_idx)
         units += ["rad"] * 3 + ["mm"] * 3 + ["px"] * len(family.per_frame)
-        units += ["mm" if i == 0 else "px" for i in fi_idx]
+        units += [INTRINSIC_UNITS[INTRINSICS[i]] for i in fi_idx]
     shared_idx = [dist.names.index(n) for n in family.shared] if dist is not None else []
     per_idx = [dist.names.index(n) for n in family.per_frame] if dist is not None else []
     sig = obs.sigma[:, None]
@@ -247,7 +248,9 @@ def adjust(family: Family, camera: Camera, obs: Observations, points: np.ndarray
         cam, d, blocks, Rk = unpack(x)
         Rp = np.einsum("nij,nj->ni", Rk[slot], pts)
         X = Rp + blocks[slot, 3:6]
-        q, JX, JK = cam.project_jacobians(X, offsets(blocks)[slot] if fi_idx else None)
+        own = offsets(blocks)[slot] if fi_idx else None
+        # residual evaluations (most calls) need no derivatives
+        q, JX, JK = cam.project_jacobians(X, own) if need_jac else (cam.project(X, own), None, None)
         q = q + bias
         if d is None:
             m = q
@@ -284,8 +287,6 @@ def adjust(family: Family, camera: Camera, obs: Observations, points: np.ndarray
             Jf[:, :, npd + j] = JKa[:, :, i]
         cols = i_pose + slot * npf
         if sparse:
-            from scipy import sparse as sp
-
             idx = np.concatenate([np.broadcast_to(np.arange(i_pose), (N, i_pose)),
                                   cols[:, None] + np.arange(npf)], 1)          # (N, i_pose + npf), ascending
             w = i_pose + npf
@@ -320,7 +321,6 @@ def adjust(family: Family, camera: Camera, obs: Observations, points: np.ndarray
     def prior_r(x):
         c = (x[3:5] - centre0) * prior_w if family.free_centre else np.zeros(0)
         return np.concatenate([c, x[off_cols] * off_w])
-    from scipy import sparse as sp
 
     prior_sp = sp.csr_matrix(prior_J)
     inv_sig = np.repeat(1.0 / obs.sigma, 2)

@@ -18,6 +18,7 @@ import numpy as np
 from ..geometry import ConeGeometry
 
 INTRINSICS = ("sdd", "c0", "r0")
+INTRINSIC_UNITS = {"sdd": "mm", "c0": "px", "r0": "px"}
 
 
 @dataclass(frozen=True)
@@ -69,11 +70,13 @@ class Camera:
         f = self.focal_px
         return np.array([[f[0], 0, self.c0], [0, f[1], self.r0], [0, 0, 1.0]])
 
-    def project(self, X) -> np.ndarray:
-        """Ideal pixel (c, r) of lab points (..., 3) -> (..., 2)."""
+    def project(self, X, offsets=None) -> np.ndarray:
+        """Ideal pixel (c, r) of lab points (..., 3) -> (..., 2); ``offsets``
+        (..., 3): each point's own (sdd mm, c0 px, r0 px) added to the shared ones."""
         d = np.asarray(X, float) - self.source
-        return np.stack([self.c0 + self.focal_px[0] * d[..., 0] / d[..., 2],
-                         self.r0 + self.focal_px[1] * d[..., 1] / d[..., 2]], -1)
+        K = self.intrinsics() if offsets is None else self.intrinsics() + offsets
+        return np.stack([K[..., 1] + K[..., 0] / self.pitch[0] * d[..., 0] / d[..., 2],
+                         K[..., 2] + K[..., 0] / self.pitch[1] * d[..., 1] / d[..., 2]], -1)
 
     def project_jacobians(self, X, offsets=None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Projections (N, 2), d/dX (N, 2, 3) px/mm and d/d(sdd, c0, r0) (N, 2, 3).

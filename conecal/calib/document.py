@@ -21,6 +21,7 @@ import numpy as np
 from ..geometry import matrix_to_rotvec
 from ..geometry.sphere import hidden_behind
 from .bundle import Bundle
+from .camera import INTRINSIC_UNITS, INTRINSICS
 from .run import FreeOptions, FreeResult
 
 GAUGE = ("lab frame = the imaging system's: source at (0, 0, -sod) with the nominal sod, detector plane "
@@ -113,11 +114,10 @@ def free_document(res: FreeResult, opt: FreeOptions, header: dict) -> dict:
             if b.family.per_frame and b.distortion is not None:
                 out["distortion"] = b.frame_distortion(s).to_dict()
             if b.frame_intrinsics:
-                units = {"sdd": "mm", "c0": "px", "r0": "px"}
                 out["intrinsics"] = {}
-                for n in ("sdd", "c0", "r0"):
+                for n in INTRINSICS:
                     v, sg = b.frame_intrinsic(s, n)
-                    out["intrinsics"][n] = {"value": v, "sigma": sg, "unit": units[n]}
+                    out["intrinsics"][n] = {"value": v, "sigma": sg, "unit": INTRINSIC_UNITS[n]}
                 out.update(b.frame_camera(s).geometry().to_dict())
         if fr["search"].convention:
             out["convention"] = fr["search"].convention

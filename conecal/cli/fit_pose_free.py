@@ -10,6 +10,7 @@ from pathlib import Path
 
 from .. import __version__
 from ..calib.bundle import FAMILIES
+from ..calib.camera import INTRINSIC_UNITS
 from ..calib.document import free_document
 from ..calib.run import FreeOptions, calibrate_free
 from ..errors import InputError
@@ -75,7 +76,7 @@ def run_free(s, scan, mdoc, markers, geometry, output, max_rms, distortion, fram
     if fi:
         per = [f["intrinsics"] for f in doc["frames"] if "intrinsics" in f]
         spread = {n: (min(p[n]["value"] for p in per), max(p[n]["value"] for p in per)) for n, _ in fi}
-        info("per frame: " + "; ".join(f"{n} {lo:.2f} to {hi:.2f} {'mm' if n == 'sdd' else 'px'}"
+        info("per frame: " + "; ".join(f"{n} {lo:.2f} to {hi:.2f} {INTRINSIC_UNITS[n]}"
                                        for n, (lo, hi) in spread.items()))
     if res.convention:
         info(f"phantom symmetry: {res.convention}")

@@ -17,6 +17,7 @@ from dataclasses import dataclass, field
 from typing import Callable
 
 import numpy as np
+from scipy import sparse
 from scipy.optimize import least_squares
 
 from ..errors import FitError
@@ -333,8 +334,6 @@ def _scaled(J, scale):
     bundle adjustment's Jacobian, mostly zeros: only the ``large`` path takes it)."""
     if isinstance(J, np.ndarray):
         return J * scale
-    from scipy import sparse
-
     return sparse.csr_matrix(J @ sparse.diags(scale))
 
 
