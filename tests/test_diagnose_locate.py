@@ -67,6 +67,14 @@ def test_locate_finds_the_variable_and_the_shape(kind):
     assert top["variable"] == want[0] and want[1] in top["shape"], top
     assert abs(top["size"] - np.std(signal)) < 0.3 * np.std(signal) + 0.005
     assert top["variable"] in describe(top)
+    # the curve as drawn: each frame's value and σ against the variable, and the shape fitted to it
+    s = top["series"]
+    x_true = {"harmonic3": rec.readings[:, 0], "direction": v, "jump": rec.times, "time": rec.times}[kind]
+    assert np.allclose(s["x"], np.sort(x_true))
+    assert np.allclose(s["sigma"], 0.01) and len(s["value"]) == 72
+    truth = (signal - signal.mean())[np.argsort(x_true, kind="stable")]
+    model = np.asarray(s["model"]) - np.mean(s["model"])
+    assert np.sqrt(np.mean((model - truth) ** 2)) < 0.3 * np.std(signal), kind
     del order
 
 
@@ -84,6 +92,22 @@ def test_a_detector_field_the_library_lacks_is_located_not_named(tmp_path):
     (path / "markers.json").write_text(json.dumps(m))
     d = bench.run_one(path, image=False)
     assert d["located"] and d["located"][0]["variable"] == "detector position", d["located"]
+    # the field as drawn: 9 x 9 arrows over the detector; what the geometry cannot absorb of the
+    # warp varies along the columns and moves the markers along u
+    field = d["located"][0]["field"]
+    du, dv = np.asarray(field["du"]), np.asarray(field["dv"])
+    assert du.shape == (9, 9) and len(field["u_px"]) == 9
+    assert np.ptp(du[4]) > 0.05 and np.ptp(du[:, 4]) < 0.5 * np.ptp(du[4]) and np.abs(dv).max() < np.abs(du).max()
+    assert d["located"][0]["level"] == "geometry" and "detector position" in d["located"][0]["description"]
+    # the report shows where before what: the located table and its figure
+    from click.testing import CliRunner
+    from conecal.cli.main import cli
+
+    res = CliRunner().invoke(cli, ["report", str(path / "diag.json"), "-o", str(tmp_path / "r")])
+    assert res.exit_code == 0, res.output
+    page = (tmp_path / "r" / "index.html").read_text()
+    assert "Where the model and the recording differ" in page and "polynomial field of degree" in page
+    assert page.index("Located: each curve") < page.index("held-out χ² gain</th>")
     for e in d["effects"]:      # any claim must be adequate
         assert d["rms_px_after"] <= 1.15 * d["noise_floor_px"]
     if not d["effects"]:

@@ -133,6 +133,7 @@ def diagnose_free(doc: dict, scan, markers: dict, alpha: float = 0.01) -> dict:
     rms = float(np.sqrt(np.mean(np.sum(res ** 2, 1))))
     verdict = ("no structure beyond the noise floor" if not located else
                "located, not named: " + "; ".join(describe(loc) for loc in located))
+    located = [dict(loc, level="geometry", description=describe(loc)) for loc in located]
     return {"verdict": verdict, "located": located, "tests": tests, "claims": [],
             "rms_px": rms, "chi2_reduced": chi2_red, "sigma_scale": scale,
             "n_markers": int(len(res)), "n_frames": int(len(np.unique(fid))),

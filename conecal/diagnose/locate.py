@@ -54,6 +54,7 @@ class FrameCurves:
     values: np.ndarray
     sigma: np.ndarray
     px_per_unit: np.ndarray
+    frames: np.ndarray | None = None   # (n,) the frame number of each row
 
 
 def _directions(model, g):
@@ -85,7 +86,7 @@ def frame_curves(model, effects, base) -> FrameCurves:
         J = model._px_jacobian
         ppu = np.sqrt(np.mean(np.sum(J ** 2, axis=1), axis=0)) / conv
         return FrameCurves(model.obs.row, tuple(f"pose {c}" for c in model.component_names),
-                           ("deg",) * 3 + ("mm",) * 3, r * conv, s * conv, ppu)
+                           ("deg",) * 3 + ("mm",) * 3, r * conv, s * conv, ppu, np.asarray(model.obs.frame))
     o = model.obs
     idx = np.arange(len(o.row))
     X, pred = model.lab_centres(list(effects or ()), base, idx)
@@ -127,11 +128,14 @@ def frame_curves(model, effects, base) -> FrameCurves:
         sig[i, free] = np.sqrt(np.diag(cov))
     conv = np.array([np.degrees(1.0)] * 3 + [1.0] * 3)
     ppu = np.sqrt(np.mean(np.sum(A_all ** 2, axis=1), axis=0)) / conv
-    return FrameCurves(rows, names, units, vals * conv, sig * conv, ppu)
+    first = np.array([np.flatnonzero(o.row == row)[0] for row in rows], int)
+    return FrameCurves(rows, names, units, vals * conv, sig * conv, ppu, np.asarray(o.frame)[first])
 
 
-def _row_variables(model, rows) -> list[tuple[str, str, np.ndarray]]:
-    """(variable, shape, basis (n, p)) for every shape of every recorded variable at ``rows``."""
+def _row_variables(model, rows) -> list[tuple[str, str, np.ndarray, np.ndarray]]:
+    """(variable, shape, basis (n, p), the variable's values (n,)) for every
+    shape of every recorded variable at ``rows``; a direction of motion is
+    given by its velocity."""
     t = np.asarray(model.times, float)[rows]
     out = []
 
@@ -142,7 +146,7 @@ def _row_variables(model, rows) -> list[tuple[str, str, np.ndarray]]:
         z = 2 * (x - x.min()) / span - 1
         for d in POLY_DEGREES:
             out.append((name, "linear" if d == 1 else f"polynomial of degree {d}",
-                        np.column_stack([z ** p for p in range(1, d + 1)])))
+                        np.column_stack([z ** p for p in range(1, d + 1)]), x))
 
     poly(t, "time")
     for k, name in enumerate(model.axis_names):
@@ -154,7 +158,8 @@ def _row_variables(model, rows) -> list[tuple[str, str, np.ndarray]]:
             a = np.deg2rad(q)
             if np.ptp(q) > 90:
                 for h in HARMONICS:
-                    out.append((name, f"harmonic {h} (×{h} per turn)", np.column_stack([np.cos(h * a), np.sin(h * a)])))
+                    out.append((name, f"harmonic {h} (×{h} per turn)", np.column_stack([np.cos(h * a), np.sin(h * a)]),
+                                q))
             else:
                 poly(q, name)
         else:
@@ -162,9 +167,9 @@ def _row_variables(model, rows) -> list[tuple[str, str, np.ndarray]]:
         v_all = np.gradient(q_all, model.times) if len(q_all) > 1 else np.zeros_like(q_all)
         v = v_all[rows]
         if (v > 0).any() and (v < 0).any():
-            out.append((f"direction of {name}", "step with the direction of motion", np.sign(v)[:, None]))
+            out.append((f"direction of {name}", "step with the direction of motion", np.sign(v)[:, None], v))
         if np.ptp(v) > 1e-9 * max(1.0, np.abs(v).max()):
-            out.append((f"velocity of {name}", "proportional to velocity", v[:, None]))
+            out.append((f"velocity of {name}", "proportional to velocity", v[:, None], v))
     return out
 
 
@@ -214,7 +219,7 @@ def locate(model, curves: FrameCurves, alpha: float = 0.01) -> list[dict]:
     rows = curves.rows
     variables = _row_variables(model, rows)
     times = np.asarray(model.times, float)[rows]
-    trials = []   # (component, variable, shape, drop, dof, curve)
+    trials = []   # (component, rows used, variable, shape, basis, drop, dof, curve, the variable's values)
     jump_at = {}  # trial -> time (s) of the first frame after its jump
     for k, name in enumerate(curves.names):
         y, s = curves.values[:, k], curves.sigma[:, k]
@@ -222,15 +227,16 @@ def locate(model, curves: FrameCurves, alpha: float = 0.01) -> list[dict]:
         if ok.sum() < 8:
             continue
         yk, wk = y[ok], 1.0 / s[ok] ** 2
-        for var, shape, B in variables:
+        for var, shape, B, x in variables:
             d, curve, _ = _wls_drop(yk, wk, B[ok])
-            trials.append((k, ok, var, shape, B[ok], d, B.shape[1], curve))
+            trials.append((k, ok, var, shape, B[ok], d, B.shape[1], curve, x[ok]))
         # a jump at one frame onwards: a scan over positions, Bonferroni over them
         order = np.argsort(times[ok], kind="stable")
         d, cut, curve = _jump_scan(yk, wk, order)
         if cut is not None:
             jump_at[len(trials)] = float(times[ok][order[cut]])
-            trials.append((k, ok, "time", f"jump after the {cut}th frame in time", None, d, ("jump", ok.sum()), curve))
+            trials.append((k, ok, "time", f"jump after the {cut}th frame in time", None, d, ("jump", ok.sum()), curve,
+                           times[ok]))
     if not trials:
         return []
     pvals = []
@@ -274,8 +280,23 @@ def locate(model, curves: FrameCurves, alpha: float = 0.01) -> list[dict]:
                     "size": size, "size_px": size_px, "p_adjusted": float(adj[best]),
                     "chi2_explained": float(tb[5]), "chi2_total": float(np.sum(wk * (yk - np.sum(wk * yk) / np.sum(wk)) ** 2)),
                     "frames": int(ok.sum()), "also_follows": also,
-                    **({"at_time": jump_at[best]} if best in jump_at else {})})
+                    **({"at_time": jump_at[best]} if best in jump_at else {}),
+                    "series": _series(tb, yk, wk, curves.frames[ok] if curves.frames is not None else None)})
     out.sort(key=lambda d: -d["size_px"])
+    return out
+
+
+def _series(trial, y, w, frames) -> dict:
+    """The located curve as plotted: each frame's value with σ against the
+    variable it follows, and the shape fitted to it (its weighted mean added)."""
+    x = trial[8]
+    order = np.argsort(x, kind="stable")
+    out = {"x_variable": ("velocity of " + trial[2][len("direction of "):]) if trial[2].startswith("direction of ")
+           else trial[2],
+           "x": x[order].tolist(), "value": y[order].tolist(), "sigma": (1.0 / np.sqrt(w[order])).tolist(),
+           "model": (trial[7] + np.sum(w * y) / np.sum(w))[order].tolist()}
+    if frames is not None:
+        out["frame"] = np.asarray(frames)[order].astype(int).tolist()
     return out
 
 
@@ -293,23 +314,34 @@ def detector_field(model, effects, base, alpha: float = 0.01, max_degree: int = 
     half = np.array([(cols_ - 1) / 2, (rows_ - 1) / 2])
     z = (o.xy - half) / half
     w = 1.0 / o.sigma ** 2
-    best = None
     tests = []
+
+    def basis(z, deg):
+        return np.column_stack([z[:, 0] ** i * z[:, 1] ** j for i in range(deg + 1) for j in range(deg + 1 - i)
+                                if 0 < i + j])
+
+    gu, gv = np.linspace(0, cols_ - 1, 9), np.linspace(0, rows_ - 1, 9)
+    grid = np.stack(np.meshgrid(gu, gv), axis=-1).reshape(-1, 2)
+    zg = (grid - half) / half
     for deg in range(2, max_degree + 1):
-        terms = [z[:, 0] ** i * z[:, 1] ** j for i in range(deg + 1) for j in range(deg + 1 - i) if 0 < i + j]
-        B = np.column_stack(terms)
+        B = basis(z, deg)
         d = 0.0
         cv = 0.0
         fitted = np.zeros_like(r)
+        on_grid = np.zeros((len(grid), 2))
         for c in range(2):
-            dc, curve, _ = _wls_drop(r[:, c], w, B)
+            dc, curve, coef = _wls_drop(r[:, c], w, B)
             d += dc
             fitted[:, c] = curve
+            # the field without its weighted mean, as the curve is given
+            on_grid[:, c] = basis(zg, deg) @ coef[1:] + coef[0] - np.sum(w * r[:, c]) / np.sum(w)
             cv += _cv_error(r[:, c], w, B)
         dof = 2 * B.shape[1]
         tests.append({"degree": deg, "chi2_explained": d, "dof": dof, "p": float(chi2.sf(d, dof)), "cv": cv,
                       "rms_px": float(np.sqrt(np.mean(np.sum(fitted ** 2, axis=1)))),
-                      "max_px": float(np.max(np.hypot(*fitted.T)))})
+                      "max_px": float(np.max(np.hypot(*fitted.T))),
+                      "grid": {"u_px": gu.tolist(), "v_px": gv.tolist(),
+                               "du": on_grid[:, 0].reshape(9, 9).tolist(), "dv": on_grid[:, 1].reshape(9, 9).tolist()}})
     m = len(tests)
     sig = [t for t in tests if min(1.0, m * t["p"]) < alpha]
     if not sig:
@@ -320,7 +352,7 @@ def detector_field(model, effects, base, alpha: float = 0.01, max_degree: int = 
     return {"component": "displacement field over the detector", "unit": "px", "variable": "detector position",
             "shape": f"polynomial field of degree {best['degree']}", "size": best["rms_px"], "size_px": best["rms_px"],
             "max_px": best["max_px"], "p_adjusted": min(1.0, m * best["p"]), "chi2_explained": best["chi2_explained"],
-            "also_follows": []}
+            "also_follows": [], "field": best["grid"]}
 
 
 def describe(loc: dict) -> str:

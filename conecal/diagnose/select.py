@@ -427,7 +427,7 @@ def located_mismatches(model, effects, base, alpha: float) -> list[dict]:
     field = detector_field(model, effects, base, alpha)
     if field is not None:
         out.append(field)
-    return sorted(out, key=lambda d: -d["size_px"])
+    return sorted((dict(d, level="geometry", description=describe(d)) for d in out), key=lambda d: -d["size_px"])
 
 
 def _verdict(found, partial, ambiguous, located, adequacy, rms_before, floor) -> str:

@@ -19,6 +19,7 @@ from ..binding import bound_scans
 from ..jsonio import atomic_write_text, read_json
 from . import plots
 from .free import diagnosis_rms_line
+from .located import located_figure, located_table
 from .summary import geometry_rows, truth_lines
 
 FORMATS = ("conecal-geometry", "conecal-poses", "conecal-diagnosis")
@@ -145,6 +146,13 @@ def _diagnosis_section(path, doc) -> tuple[str, int]:
         parts.append(f"<p>Holder pose RMS {b['rms_translation_mm']:.4f} → {a['rms_translation_mm']:.4f} mm, "
                      f"{b['rms_rotation_deg']:.4f} → {a['rms_rotation_deg']:.4f} deg; the arm's repeatability "
                      f"(estimated) {', '.join(f'{x:.4f}' for x in a['repeatability']['translation_mm'])} mm.</p>")
+    # where first, then what: the located curves before any candidate effect
+    parts.append(located_table(doc))
+    loc_png = located_figure(doc)
+    if loc_png is not None:
+        parts.append(_figure(loc_png, "Located: each curve freed per frame (± σ) against the variable it follows, "
+                                      "with the shape that predicts it on held-out frames; the residual "
+                                      "displacement field over the detector."))
     rows = "".join(f"<tr><td>{html.escape(c['effect'])}</td><td class=num>{c['heldout_gain_chi2']:.1f}</td>"
                    f"<td class=num>{c['bic_gain']:.1f}</td><td>{'yes' if c['claimable'] else ''}</td></tr>"
                    for c in doc.get("candidates", []))
@@ -152,7 +160,7 @@ def _diagnosis_section(path, doc) -> tuple[str, int]:
                  + rows + "</table>")
     png = plots.diagnosis(doc)
     parts.append(_figure(png, "Residuals against time before and after modelling the effect (dashed: ±2σ noise)."))
-    n = int(png is not None)
+    n = int(png is not None) + int(loc_png is not None)
     img = doc.get("image_level") or {}
     if img.get("candidates"):
         rows = "".join(f"<tr><td>{html.escape(c['effect'])}</td><td class=num>{c['heldout_gain_chi2']:.1f}</td>"
