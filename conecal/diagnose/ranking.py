@@ -55,13 +55,21 @@ def choose_members(rows: list[dict], cands, evals) -> None:
                                if c.k > pick.k else f"{pick.label} predicts held-out data better")
 
 
+# Two effects whose held-out gains differ by less than this fraction of the
+# best's explain the same signal: what is left between them is the detail of
+# each one's form (an independent simulator's latency against ours reads
+# 1-2 % apart on a scan with one speed per direction), not the physics.
+FORM_MARGIN = 0.025
+
+
 def rank(rows: list[dict], heldout_r2: dict) -> tuple[list[dict], list[str]]:
     """Sort candidate rows by held-out gain (in place); return the claimable
     ones, best first, and the labels of those the held-out data cannot tell
     from the best: a paired comparison of their held-out squared residuals
     (``heldout_r2``: label -> per-observation array) whose difference is
-    within two standard errors (and at least 3). Each row gets
-    ``behind_best_chi2`` and its standard error."""
+    within two standard errors (and at least 3), or within ``FORM_MARGIN``
+    of the best's gain. Each row gets ``behind_best_chi2`` and its standard
+    error."""
     rows.sort(key=lambda r: -r["heldout_gain_chi2"])
     claimed = [r for r in rows if r["claimable"]]
     if not claimed:
@@ -71,6 +79,6 @@ def rank(rows: list[dict], heldout_r2: dict) -> tuple[list[dict], list[str]]:
     for r in claimed[1:]:
         behind, se = paired_behind(heldout_r2[r["effect"]], heldout_r2[best["effect"]])
         r["behind_best_chi2"], r["behind_best_stderr"] = behind, se
-        if not_worse(behind, se):
+        if not_worse(behind, se) or behind < FORM_MARGIN * best["heldout_gain_chi2"]:
             ambiguous.append(r["effect"])
     return claimed, ambiguous
