@@ -18,7 +18,7 @@ import numpy as np
 
 from .frame import Blob, DetectOptions, detect_blobs, refine
 from .background import fit_profile, structured
-from .overlap import fit_group, groups_of, render_box
+from .overlap import disc_misfit, fit_group, group_box, groups_of, render_box
 from .split import peaks_in, split
 
 # the cone-beam shadow's centroid and the model circle's centre differ by
@@ -30,6 +30,14 @@ _DEEP_ANISOTROPY = 1.06
 # ... and its contrast per px of chord under 1.35x the frame's median; two
 # shadows nearly on top of each other look like one sphere of up to 2x
 _DEEP_DENSITY = 1.35
+# a group's patch wider than this many of its radii gets a quadratic background
+_QUADRATIC_SPAN = 6.0
+# a member of a long chain across a wall is measured with at most this many nearest neighbours
+_LOCAL_NEIGHBOURS = 3
+# a sphere model on a patch whose edge was removed must fit its disc to this chi^2
+# per pixel (in the pixel noise's variance), or as well as the background around it
+# (on a tube's wall: spheres 0.8-4.8 against 2.5-70 around; a diffuse blob 34 against 17)
+_EDGE_MODEL_CHI2 = 4.0
 
 
 def detect_frame(a: np.ndarray, opt: DetectOptions) -> list[Blob]:
@@ -49,8 +57,13 @@ def detect_frame(a: np.ndarray, opt: DetectOptions) -> list[Blob]:
     deep = [b for b in kept + spoilt if mu1 is not None and b.mu_px * b.radius**3 > 1.4 * mu1 * R1**3
             and (b.anisotropy > _DEEP_ANISOTROPY or b.mu_px > _DEEP_DENSITY * mu1)]
     seeds = _crowd_seeds(peaks, kept, R1, opt)
+    # a seed where a shadow measured alone was disturbed (flagged clutter) is
+    # measured as one: on a wall's edge, the edge's profile is removed first
+    disturbed = {(x, y) for x, y in seeds if any((b.x - x) ** 2 + (b.y - y) ** 2 < b.radius**2
+                                                 for b in spoilt + merged if "clutter" in b.flags)}
     spoilt = [b for b in spoilt if not any((b.x - x) ** 2 + (b.y - y) ** 2 < b.radius**2 for x, y in seeds)]
-    out = measure_crowded(a, kept, merged, opt, noise, invalid, peaks, seeds, deep, spoilt) if kept or merged or seeds else []
+    out = measure_crowded(a, kept, merged, opt, noise, invalid, peaks, seeds, deep, spoilt,
+                          disturbed) if kept or merged or seeds else []
     spoilt = [b for b in spoilt if not any(np.hypot(o.x - b.x, o.y - b.y) < b.radius for o in out)]
     # a misshapen clutter blob is kept only if removing an edge's background beside
     # it leaves a clean sphere shadow, away from every marker already found
@@ -89,7 +102,7 @@ def _crowd_seeds(peaks, kept: list[Blob], R1: float, opt: DetectOptions) -> list
 
 
 def _unearned(a, sph: np.ndarray, idx: list, box, opt: DetectOptions, noise: float, others, invalid, chi2: float,
-              R1: float, mu1) -> int | None:
+              R1: float, mu1, quadratic: bool) -> int | None:
     """Of the group's members ``idx`` not yet measured alone, the one the
     joint fit does not need: outside the frame's sphere sizes and contrasts,
     or whose removal raises chi-square by less than 0.3 of its own model's
@@ -102,7 +115,7 @@ def _unearned(a, sph: np.ndarray, idx: list, box, opt: DetectOptions, noise: flo
         if not (0.6 * R1 < R < 1.6 * R1) or (mu1 is not None and not 0.5 * mu1 < mu < 2.0 * mu1):
             return n_i
         rest = np.delete(sph, n_i, axis=0)
-        fit0 = fit_group(a, rest, opt.blur_px, noise, others, invalid, box=box)
+        fit0 = fit_group(a, rest, opt.blur_px, noise, others, invalid, box=box, quadratic=quadratic)
         energy = float(np.sum((render_box(box, sph[n_i:n_i + 1], opt.blur_px) / noise) ** 2))
         gain = (fit0[4] - chi2) if fit0 is not None else np.inf
         r = gain / max(energy, 1e-30)
@@ -112,40 +125,52 @@ def _unearned(a, sph: np.ndarray, idx: list, box, opt: DetectOptions, noise: flo
 
 
 def measure_crowded(a: np.ndarray, kept: list[Blob], merged: list[Blob], opt: DetectOptions, noise: float,
-                    invalid=None, peaks=(), seeds=(), deep=(), around=()) -> list[Blob]:
+                    invalid=None, peaks=(), seeds=(), deep=(), around=(), disturbed=()) -> list[Blob]:
     """``kept`` with touching shadows re-measured together, merged blobs
     split, and the shadows at ``seeds`` (x, y: peaks a neighbour spoilt)
     measured with their neighbours; each re-measured blob carries the
     ``overlap`` flag. ``deep``: kept blobs that may be two shadows nearly on
     top of each other, replaced by their parts when a joint fit says so;
-    ``around``: other blobs, kept out of the splits' backgrounds."""
+    ``around``: other blobs, kept out of the splits' backgrounds;
+    ``disturbed``: the seeds where a shadow measured alone was flagged
+    clutter (they carry the flag into the joint fit)."""
     R1, mu1 = _typical(kept, opt)
     seeds = list(seeds)
     parts, gone = [], set()
     for m in list(merged) + list(deep):
         near = _neighbours(m, [*kept, *merged, *deep, *around], peaks, opt, 1.5 * m.radius + 2, 1.2 * R1)
-        sph = split(a, m, R1, mu1, opt.blur_px, noise, opt.noise_kappa, near, invalid, peaks)
-        if sph is None:
+        found = split(a, m, R1, mu1, opt.blur_px, noise, opt.noise_kappa, near, invalid, peaks)
+        if found is None:
             continue
+        sph, on_edge = found
         gone.add(id(m))
         seeds = [p for p in seeds if (p[0] - m.x) ** 2 + (p[1] - m.y) ** 2 > (1.5 * m.radius + 2) ** 2]
-        for x, y, R, mu in sph:
-            parts.append(Blob(float(x), float(y), float(R), 0.0, float(mu), 0.0, 1.0, ["overlap"], 0.0))
+        # (the parts of a blob across an edge: their group removes the edge's profile first)
+        flags = ["clutter", "overlap"] if on_edge else ["overlap"]
+        parts.append([Blob(float(x), float(y), float(R), 0.0, float(mu), 0.0, 1.0, list(flags), 0.0)
+                      for x, y, R, mu in sph])
     kept = [b for b in kept if id(b) not in gone]
-    # two blobs' splits, or a split and a shadow measured alone, may hold the same sphere
+    # two blobs' splits, or a split and a shadow measured alone, may hold the same
+    # sphere (one split's own parts may lie closer: shadows nearly on top of each other)
     unique: list = []
-    for p in parts:
-        if all(np.hypot(p.x - o.x, p.y - o.y) > 0.6 * min(p.radius, o.radius) for o in kept + unique):
-            unique.append(p)
+    for own in parts:
+        unique += [p for p in own if all(np.hypot(p.x - o.x, p.y - o.y) > 0.6 * min(p.radius, o.radius)
+                                         for o in kept + unique)]
     parts = unique
     blobs = kept + parts
-    mu0 = mu1 if mu1 is not None else float(np.median([b.mu_px for b in kept])) if kept else None
+    # (no shadow measured alone, as on a wall: the disturbed blobs' contrast starts the seeds)
+    rough = kept or [b for b in [*merged, *around] if b.mu_px > 0]
+    mu0 = mu1 if mu1 is not None else float(np.median([b.mu_px for b in rough])) if rough else None
     if mu0 is not None:
-        blobs += [Blob(float(x), float(y), R1, 0.0, mu0, 0.0, 1.0, ["overlap"], 0.0) for x, y in seeds]
+        blobs += [Blob(float(x), float(y), R1, 0.0, mu0, 0.0, 1.0, ["clutter", "overlap"] if (x, y) in disturbed
+                       else ["overlap"], 0.0) for x, y in seeds]
     out: list = list(blobs)
     new = set(range(len(kept), len(blobs)))     # split parts and seeds: kept only once measured
     trial = set(range(len(kept) + len(parts), len(blobs)))   # seeds: kept only if the joint fit needs them
-    for g in groups_of(blobs, opt.blur_px):
+    def measure(g: list, only: int | None = None) -> None:
+        """Group ``g`` (indices into blobs) measured together; its members'
+        outcomes written to ``out`` (with ``only``: that member's alone)."""
+        writes = {}   # index -> (blob or None, measured)
         members = [blobs[i] for i in g]
         s0 = np.array([[b.x, b.y, b.radius, b.mu_px] for b in members])
         gx, gy = s0[:, 0].mean(), s0[:, 1].mean()
@@ -155,67 +180,117 @@ def measure_crowded(a: np.ndarray, kept: list[Blob], merged: list[Blob], opt: De
         ag = a
         ext = float(np.max(np.hypot(s0[:, 0] - gx, s0[:, 1] - gy) + s0[:, 2]))
         # an edge's background across a small group (a holder's wall), which the
-        # joint fit's plane cannot follow, removed first (over a long chain one
-        # direction of level lines does not hold, and the fit costs seconds)
-        # (only where a member measured alone was disturbed: in a plain crowd the
-        # neighbours' own misfit reads as structure and the profile takes it up)
-        if len(g) <= 5 and ext <= 5 * np.max(s0[:, 2]) and any("clutter" in m.flags for m in members) \
+        # joint fit's plane cannot follow, removed first (only where a member
+        # measured alone was disturbed: in a plain crowd the neighbours' own
+        # misfit reads as structure and the profile takes it up)
+        if _small(g, s0) and any("clutter" in blobs[i].flags for i in g) \
                 and structured(a, gx, gy, ext, opt.blur_px, noise, invalid, others):
             prof = fit_profile(a, s0, opt.blur_px, noise, invalid, others)
             if prof is not None:
                 (pc0, pq0, pc1, pq1), bg, s0 = prof
                 ag = a.copy()
                 ag[pq0:pq1, pc0:pc1] -= bg
-        fit = fit_group(ag, s0, opt.blur_px, noise, others, invalid)
+        c0, q0, c1, q1 = group_box(a.shape, s0, opt.blur_px)
+        # a long chain lies on a holder's curved wall, which a plane under it misfits by
+        # more than its spheres' contrast (the fit then swells a sphere to follow the wall)
+        quad = max(c1 - c0, q1 - q0) > _QUADRATIC_SPAN * np.mean(s0[:, 2])
+        fit = fit_group(ag, s0, opt.blur_px, noise, others, invalid, quadratic=quad)
         # a member never measured alone must earn its place in the joint fit
         while fit is not None and any(i in trial for i in g):
             drop = _unearned(ag, fit[1], [n for n, i in enumerate(g) if i in trial], fit[0], opt, noise, others,
-                             invalid, fit[4], R1, mu1)
+                             invalid, fit[4], R1, mu1, quad)
             if drop is None:
                 break
-            out[g[drop]] = None
+            writes[g[drop]] = (None, False)
             g = g[:drop] + g[drop + 1:]
-            fit = fit_group(ag, np.delete(fit[1], drop, axis=0), opt.blur_px, noise, others, invalid) if g else None
+            fit = fit_group(ag, np.delete(fit[1], drop, axis=0), opt.blur_px, noise, others, invalid,
+                            quadratic=quad) if g else None
+        if fit is not None and not np.all((fit[1][:, 2] > 0.5 * R1) & (fit[1][:, 2] < 2.0 * R1)):
+            # a member swelled or shrank beyond any sphere of the frame: the joint model
+            # followed something else (a wall), so none of its centres is trusted; the
+            # shadows measured alone stand, the others are not had
+            fit = None
         if fit is None:
-            continue
-        (c0, q0, c1, q1), sph, sig, _, _, _ = fit
-        models = [render_box(fit[0], sph[i:i + 1], opt.blur_px) for i in range(len(g))]
-        total = np.sum(models, axis=0)
-        work = ag.copy()
-        for n_i, i in enumerate(g):
-            work[q0:q1, c0:c1] = ag[q0:q1, c0:c1] - (total - models[n_i])
-            b = refine(work, sph[n_i, 0], sph[n_i, 1], sph[n_i, 2], opt, others, noise, invalid)
-            x_fit, y_fit = sph[n_i, :2]
-            # the joint fit treats pixels as independent: correlated noise scales it
-            # px; an undetermined joint fit's sigma can be 1e200, whose square overflows
-            s_fit = float(min(np.hypot(*np.minimum(np.abs(sig[n_i, :2]), 1e6)) / np.sqrt(2) * np.sqrt(opt.noise_kappa),
-                              1e6))
-            if b is not None and "clutter" in blobs[i].flags and np.hypot(b.x - x_fit, b.y - y_fit) <= 0.5 * sph[n_i, 2]:
-                # an edge's background beside it (its neighbours' models removed):
-                # the joint fit's plane did not follow it, so its centre is no check
-                b2 = _beside_edge(work, b, opt, noise, invalid, others)
-                if b2 is not b:
-                    b2.flags = sorted(set(b2.flags) | {"overlap"})
-                    out[i] = b2
+            for i in g:
+                writes[i] = (None, False) if i in new else (replace(blobs[i], flags=sorted(set(blobs[i].flags)
+                                                                                         | {"overlap"})), True)
+        else:
+            (c0, q0, c1, q1), sph, sig, _, _, _ = fit
+            models = [render_box(fit[0], sph[i:i + 1], opt.blur_px) for i in range(len(g))]
+            total = np.sum(models, axis=0)
+            work = ag.copy()
+            for n_i, i in enumerate(g):
+                if only is not None and i != only:
+                    continue
+                work[q0:q1, c0:c1] = ag[q0:q1, c0:c1] - (total - models[n_i])
+                writes[i] = _member(work, blobs[i], sph[n_i], sig[n_i], opt, noise, invalid, others, i in new)
+        for i, (b, measured) in writes.items():
+            if only is None or i == only:
+                out[i] = b
+                if measured:
                     new.discard(i)
-                    continue
-            if b is None or np.hypot(b.x - x_fit, b.y - y_fit) > 0.5 * sph[n_i, 2]:
-                # the centroid cannot be had: the joint model's centre stands
-                if not np.isfinite(s_fit) or s_fit > 0.5:
-                    out[i] = None if i in new else blobs[i]
-                    continue
-                b = replace(blobs[i], x=float(x_fit), y=float(y_fit), radius=float(sph[n_i, 2]),
-                            mu_px=float(sph[n_i, 3]), sigma=float(np.hypot(s_fit, _CONE_OFFSET_PX)))
-            else:
-                gap2 = (b.x - x_fit) ** 2 + (b.y - y_fit) ** 2
-                excess = max(gap2 / 2 - b.sigma**2 - s_fit**2 - _CONE_OFFSET_PX**2, 0.0)
-                b.sigma = float(np.sqrt(b.sigma**2 + excess))
-            b.flags = sorted(set(b.flags) | {"overlap"})
-            out[i] = b
-            new.discard(i)
+
+    def _small(g, s0) -> bool:
+        # over a long chain one direction of level lines does not hold, and the fit costs seconds
+        gx, gy = s0[:, 0].mean(), s0[:, 1].mean()
+        return len(g) <= 5 and float(np.max(np.hypot(s0[:, 0] - gx, s0[:, 1] - gy) + s0[:, 2])) <= 5 * np.max(s0[:, 2])
+
+    def _on_structure(a, g, s0) -> bool:
+        """Whether the background around the group (its shadows and their
+        neighbours masked) holds more than a quadratic follows (a member's
+        clutter flag says little here: in a crowd its neighbours raise it)."""
+        gx, gy = s0[:, 0].mean(), s0[:, 1].mean()
+        ext = float(np.max(np.hypot(s0[:, 0] - gx, s0[:, 1] - gy) + s0[:, 2]))
+        mask = [(b.x, b.y, b.radius) for b in blobs if (b.x - gx) ** 2 + (b.y - gy) ** 2 < (ext + 4 * R1) ** 2]
+        return structured(a, gx, gy, ext / 3, opt.blur_px, noise, invalid, mask)
+
+    for g in groups_of(blobs, opt.blur_px):
+        s0 = np.array([[blobs[i].x, blobs[i].y, blobs[i].radius] for i in g])
+        if _small(g, s0) or not _on_structure(a, g, s0):
+            measure(g)
+            continue
+        # a long chain along a holder's wall: each member measured with its
+        # nearest touching neighbours, where one edge's profile holds
+        for n_i, i in enumerate(g):
+            d = np.hypot(s0[:, 0] - s0[n_i, 0], s0[:, 1] - s0[n_i, 1])
+            touch = 1.15 * (s0[:, 2] + s0[n_i, 2]) + 6 * opt.blur_px + 3
+            near = [g[j] for j in np.argsort(d) if j != n_i and d[j] < touch[j]][:_LOCAL_NEIGHBOURS]
+            measure([i] + near, only=i)
     out = [b for i, b in enumerate(out) if b is not None and i not in new]
     return [_beside_edge(a, b, opt, noise, invalid, _neighbours(b, out, peaks, opt)) if "overlap" not in b.flags
             else b for b in out]
+
+
+def _member(work, b0: Blob, sph: np.ndarray, sig: np.ndarray, opt: DetectOptions, noise: float, invalid, others,
+            unmeasured: bool) -> tuple:
+    """One member of a joint fit measured on ``work`` (its neighbours' models
+    removed): (blob or None, measured). ``b0``: the member as it was
+    (measured alone, or a split part or seed when ``unmeasured``); ``sph``,
+    ``sig``: its joint-fit sphere (x, y, R, mu) and σ."""
+    b = refine(work, sph[0], sph[1], sph[2], opt, others, noise, invalid)
+    x_fit, y_fit = sph[:2]
+    # the joint fit treats pixels as independent: correlated noise scales it
+    # px; an undetermined joint fit's sigma can be 1e200, whose square overflows
+    s_fit = float(min(np.hypot(*np.minimum(np.abs(sig[:2]), 1e6)) / np.sqrt(2) * np.sqrt(opt.noise_kappa), 1e6))
+    if b is not None and "clutter" in b0.flags and np.hypot(b.x - x_fit, b.y - y_fit) <= 0.5 * sph[2]:
+        # an edge's background beside it (its neighbours' models removed):
+        # the joint fit's plane did not follow it, so its centre is no check
+        b2 = _beside_edge(work, b, opt, noise, invalid, others)
+        if b2 is not b:
+            b2.flags = sorted(set(b2.flags) | {"overlap"})
+            return b2, True
+    if b is None or np.hypot(b.x - x_fit, b.y - y_fit) > 0.5 * sph[2]:
+        # the centroid cannot be had: the joint model's centre stands
+        if not np.isfinite(s_fit) or s_fit > 0.5:
+            return (None, False) if unmeasured else (b0, False)
+        b = replace(b0, x=float(x_fit), y=float(y_fit), radius=float(sph[2]), mu_px=float(sph[3]),
+                    sigma=float(np.hypot(s_fit, _CONE_OFFSET_PX)))
+    else:
+        gap2 = (b.x - x_fit) ** 2 + (b.y - y_fit) ** 2
+        excess = max(gap2 / 2 - b.sigma**2 - s_fit**2 - _CONE_OFFSET_PX**2, 0.0)
+        b.sigma = float(np.sqrt(b.sigma**2 + excess))
+    b.flags = sorted(set(b.flags) | {"overlap"})
+    return b, True
 
 
 def _neighbours(b: Blob, blobs: list[Blob], peaks, opt: DetectOptions, inside: float | None = None,
@@ -253,7 +328,34 @@ def _beside_edge(a, b: Blob, opt: DetectOptions, noise: float, invalid, others=(
     work[q0:q1, c0:c1] -= bg
     b2 = refine(work, b.x, b.y, b.radius, opt, others, noise, invalid)
     if b2 is None or "clutter" in b2.flags or np.hypot(b2.x - b.x, b2.y - b.y) > b.radius:
-        return b
+        return _edge_model(work, b, b2, sph, opt, noise, invalid, others)
     gap2 = (b2.x - x_fit) ** 2 + (b2.y - y_fit) ** 2
     b2.sigma = float(np.sqrt(b2.sigma**2 + max(gap2 / 2 - b2.sigma**2 - _CONE_OFFSET_PX**2, 0.0)))
     return b2
+
+
+def _edge_model(work, b: Blob, b2: Blob | None, sph: np.ndarray, opt: DetectOptions, noise: float, invalid,
+                others) -> Blob:
+    """The shadow's model centre on the frame with an edge's background
+    removed, when its centroid ``b2`` there is still disturbed (the edge's
+    profile under the shadow is what the profile fit knows least, and a
+    centroid weighs it by distance): a sphere fitted with a plane on the
+    cleaned patch, kept when it fits its disc to 2x the noise (or as well as
+    the background model fits the patch around it) and it is of
+    a sphere's size near the profile fit's sphere ``sph``; σ from the fit (scaled by its residual and
+    the noise correlation), widened by half its gap to the centroid ``b2``.
+    Else ``b`` as it was. Flags: clutter (the background was disturbed)."""
+    fit = fit_group(work, sph, opt.blur_px, noise, others, invalid)
+    if fit is None:
+        return b
+    _, s2, sig, _, chi2, n_pix = fit
+    x, y, R, mu = s2[0]
+    s_fit = float(np.hypot(*np.minimum(np.abs(sig[0, :2]), 1e6)) / np.sqrt(2) * np.sqrt(opt.noise_kappa))
+    on, off = disc_misfit(work, fit, opt.blur_px, noise, others, invalid)
+    if (on > max(_EDGE_MODEL_CHI2, off) or not 0.25 * opt.diameter_px[0] <= R <= 0.55 * opt.diameter_px[1]
+            or np.hypot(x - sph[0, 0], y - sph[0, 1]) > 0.5 * R or not np.isfinite(s_fit) or s_fit > 0.5):
+        return b
+    gap2 = (b2.x - x) ** 2 + (b2.y - y) ** 2 if b2 is not None else 0.0
+    return replace(b, x=float(x), y=float(y), radius=float(R), mu_px=float(mu), anisotropy=1.0,
+                   sigma=float(np.sqrt(s_fit**2 + _CONE_OFFSET_PX**2 + gap2 / 2)),
+                   flags=sorted(set(b.flags) | {"clutter"}))

@@ -337,7 +337,7 @@ def refine(a: np.ndarray, x0: float, y0: float, r0: float, opt: DetectOptions, o
     if clutter:
         # structure the background model cannot follow: its excess taken as a
         # coherent error over half the window
-        sigma2 += (0.5 * np.sqrt(sig_bg**2 - noise**2) * abs_ex / V) ** 2
+        sigma2 += (0.5 * np.sqrt(max(sig_bg**2 - noise**2, 0.0)) * abs_ex / V) ** 2
     # The centroid of the shadow's core (rho < 0.75 r) must agree with the whole
     # window's: a faint blob, ghost or rod near the edge pulls them apart.
     core = kernels.window_moments(roi, coef, fx, fy, x - c0, y - q0, 0.75 * r)
@@ -356,6 +356,8 @@ def refine(a: np.ndarray, x0: float, y0: float, r0: float, opt: DetectOptions, o
     yy, xx = np.mgrid[0:b.shape[0], 0:b.shape[1]]
     ddx, ddy = xx - cx, yy - cy
     win = ddx * ddx + ddy * ddy <= rw * rw
+    if not win.any():
+        return None   # the centroid walked out of its window's box
     M = cv2.getRotationMatrix2D((float(cx), float(cy)), 180.0, 1.0)
     refl = cv2.warpAffine(b, M, (b.shape[1], b.shape[0]), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
     bw = b[win].astype(np.float64)

@@ -98,11 +98,22 @@ def group_box(shape, spheres: np.ndarray, blur: float, pad: float | None = None)
     return max(lo[0], 0), max(lo[1], 0), min(hi[0], cols), min(hi[1], rows)
 
 
+def background_basis(h: int, w: int, quadratic: bool) -> np.ndarray:
+    """Columns (h*w, 3 or 6) of a group patch's background: a plane about the
+    patch centre, with ``quadratic`` also its squares and product (scaled by
+    the patch size)."""
+    yy, xx = np.mgrid[0:h, 0:w]
+    u, v = (xx - w / 2).ravel(), (yy - h / 2).ravel()
+    B = np.column_stack([np.ones(h * w), u, v])
+    return np.column_stack([B, (u / w) ** 2, u * v / (w * h), (v / h) ** 2]) if quadratic else B
+
+
 def fit_group(a: np.ndarray, spheres: np.ndarray, blur: float, noise: float, mask_out=(), invalid=None,
-              box=None):
+              box=None, quadratic: bool = False):
     """Fit spheres (k, 4) jointly on ``a`` around them (on ``box``, else
     :func:`group_box`); returns (box, fitted (k, 4), sigma (k, 4), background
-    plane (3,), chi2, n pixels) or None."""
+    coefficients (a plane, or with ``quadratic`` a quadratic surface), chi2,
+    n pixels) or None."""
     c0, q0, c1, q1 = box if box is not None else group_box(a.shape, spheres, blur)
     if c1 - c0 < 6 or q1 - q0 < 6:
         return None
@@ -120,10 +131,11 @@ def fit_group(a: np.ndarray, spheres: np.ndarray, blur: float, noise: float, mas
     edge = np.zeros((h, w), bool)
     edge[[0, -1], :] = edge[:, [0, -1]] = True
     edge &= wgt > 0
-    A = np.column_stack([np.ones(edge.sum()), xx[edge] - w / 2, yy[edge] - h / 2])
-    plane = np.linalg.lstsq(A, roi[edge], rcond=None)[0] if edge.sum() > 3 else np.zeros(3)
+    B = background_basis(h, w, quadratic)
+    on = edge.ravel()
+    plane = np.linalg.lstsq(B[on], roi.ravel()[on], rcond=None)[0] if on.sum() > 2 * B.shape[1] else \
+        np.r_[np.median(roi), np.zeros(B.shape[1] - 1)]
     wv = np.sqrt(wgt.ravel()) / noise
-    B = np.column_stack([np.ones(h * w), (xx - w / 2).ravel(), (yy - h / 2).ravel()])
 
     def unpack(p):
         return p[:4 * k].reshape(k, 4), p[4 * k:]
@@ -141,7 +153,7 @@ def fit_group(a: np.ndarray, spheres: np.ndarray, blur: float, noise: float, mas
     for i, (x, y, R, mu) in enumerate(s0):
         params += [Parameter(f"x{i}", x, scale=0.1), Parameter(f"y{i}", y, scale=0.1),
                    Parameter(f"R{i}", R, scale=0.1), Parameter(f"mu{i}", max(mu, 1e-6), scale=max(mu, 1e-6) * 0.05)]
-    params += [Parameter("b0", plane[0]), Parameter("bx", plane[1]), Parameter("by", plane[2])]
+    params += [Parameter(f"b{j}", float(c)) for j, c in enumerate(plane)]
     try:
         # unbounded, so the normal-equations path (an SVD of J per step cost 10x)
         res = solve(params, residuals, jacobian, max_nfev=60, tol=1e-8, scale_covariance=True, large=True)
@@ -155,6 +167,33 @@ def fit_group(a: np.ndarray, spheres: np.ndarray, blur: float, noise: float, mas
     sph[:, 0] += c0
     sph[:, 1] += q0
     return (c0, q0, c1, q1), sph, sig, bg, float(res.chi2), int((wgt > 0).sum())
+
+
+def group_model(box, sph: np.ndarray, bg: np.ndarray, blur: float) -> np.ndarray:
+    """A :func:`fit_group` model on its patch ``box``: the spheres (k, 4,
+    frame px) plus the background (plane or quadratic coefficients ``bg``)."""
+    c0, q0, c1, q1 = box
+    h, w = q1 - q0, c1 - c0
+    return render_box(box, sph, blur) + (background_basis(h, w, len(bg) > 3) @ bg).reshape(h, w)
+
+
+def disc_misfit(a: np.ndarray, fit, blur: float, noise: float, mask_out=(), invalid=None) -> tuple[float, float]:
+    """Mean squared residual per pixel, in units of the pixel noise's
+    variance, of a :func:`fit_group` result on ``a``: on the spheres' discs
+    (R + 2 blur + 1) and on the rest of its patch (inf when under 20
+    pixels). On a background with structure of its own (a wall's edge a
+    profile follows only roughly) the spheres explain their shadows when the
+    first is no worse than the second."""
+    box, sph, _, bg, _, _ = fit
+    c0, q0, c1, q1 = box
+    h, w = q1 - q0, c1 - c0
+    z2 = ((a[q0:q1, c0:c1] - group_model(box, sph, bg, blur)) / noise) ** 2 * mask_weights(box, mask_out, blur, invalid)
+    yy, xx = np.mgrid[q0:q1, c0:c1]
+    on = np.zeros((h, w), bool)
+    for x, y, R, _ in sph:
+        on |= (xx - x) ** 2 + (yy - y) ** 2 <= (R + 2 * blur + 1) ** 2
+    off = ~on & (mask_weights(box, mask_out, blur, invalid) > 0)
+    return (float(z2[on].mean()) if on.any() else np.inf), (float(z2[off].mean()) if off.sum() >= 20 else np.inf)
 
 
 def groups_of(blobs, blur: float) -> list[list[int]]:

@@ -21,7 +21,8 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-from .overlap import fit_group, group_box, mask_weights, render_box
+from .background import fit_profile
+from .overlap import disc_misfit, fit_group, group_box, group_model, mask_weights, render_box
 
 # the chi-square fall a new sphere must give, as a fraction of its own model
 # energy: a real shadow's is most of it (0.5-1 for overlaps up to 60 %)
@@ -36,30 +37,75 @@ def peaks_in(m, peaks) -> list:
 
 
 def split(a: np.ndarray, m, R1: float, mu1, blur: float, noise: float, kappa: float, mask_out, invalid,
-          peaks=()) -> np.ndarray | None:
+          peaks=()) -> tuple[np.ndarray, bool] | None:
     """Spheres (k, 4: x, y, R px, mu per px of chord) that blob ``m`` holds,
-    k >= 2, or None when one sphere explains it as well or the parts are not
+    k >= 2, and whether they lie across an edge (see below); or None when
+    one sphere explains it as well or the parts are not
     of the frame's spheres (radius ``R1`` px, contrast ``mu1``, None when
-    unknown). ``mask_out``: (x, y, r) of shadows around it, not fitted."""
+    unknown). ``mask_out``: (x, y, r) of shadows around it, not fitted.
+
+    A blob whose background was disturbed (flagged clutter: a holder's wall
+    under it) is split on the frame with the wall's profile across its edge
+    removed (:func:`conecal.detect.background.fit_profile`, pinned by the
+    level lines' pixels outside the blob): first the profile fitted with one
+    sphere, then again with the parts that split found. A plane or a
+    quadratic leaves such an edge, and extra spheres then soak it up."""
     inside = [p for p in peaks_in(m, peaks)
               if all((p[0] - ox) ** 2 + (p[1] - oy) ** 2 > (0.8 * orad) ** 2 for ox, oy, orad in mask_out)]
     ratio = m.mu_px * m.radius**3 / (mu1 * R1**3) if mu1 is not None else 2.0
     if not 1.4 <= ratio <= max(_MAX_PARTS + 0.6, 3.6 * len(inside)):
         return None
     mu0 = mu1 if mu1 is not None else m.mu_px
+    grow = dict(m=m, R1=R1, mu1=mu1, mu0=mu0, ratio=ratio, blur=blur, noise=noise, kappa=max(kappa, 1.0),
+                mask_out=mask_out, invalid=invalid)
+    if "clutter" not in m.flags:
+        parts = _grow(a, **grow)
+        return None if parts is None else (parts, False)
+    start = np.array([[m.x, m.y, m.radius, mu0]])
+    for _ in range(2):
+        prof = fit_profile(a, start, blur, noise, invalid, mask_out)
+        if prof is None:   # no edge beside it: what disturbed it is its own parts
+            parts = _grow(a, **grow)
+            return None if parts is None else (parts, False)
+        (c0, q0, c1, q1), bg, _ = prof
+        clean = a.copy()
+        clean[q0:q1, c0:c1] -= bg
+        parts = _grow(clean, keep_inadequate=True, **grow)
+        if parts is None:
+            return None
+        best, adequate = parts
+        if adequate:
+            return best, True
+        # the parts of a sphere's size and contrast start the profile again
+        start = best[_plausible(best, R1, mu1)]
+        if len(start) < 2:
+            return None
+    return None
+
+
+def _plausible(sph: np.ndarray, R1: float, mu1) -> np.ndarray:
+    """Which spheres (k, 4) have the frame's size (0.6-1.6 ``R1``) and contrast (0.5-2 ``mu1``)."""
+    ok = (sph[:, 2] > 0.6 * R1) & (sph[:, 2] < 1.6 * R1)
+    return ok if mu1 is None else ok & (sph[:, 3] > 0.5 * mu1) & (sph[:, 3] < 2.0 * mu1)
+
+
+def _grow(a, m, R1, mu1, mu0, ratio, blur, noise, kappa, mask_out, invalid, quadratic=False, keep_inadequate=False):
+    """One sphere, then one more at a time (see the module docstring): the
+    parts (k, 4), or None; with ``keep_inadequate`` (parts, adequate) when
+    some were found, even if they do not explain the blob."""
     box = group_box(a.shape, np.array([[m.x, m.y, 1.5 * m.radius + 2, 0.0]]), blur)
     c0, q0, c1, q1 = box
     reach = 1.5 * m.radius + 2
-    fit = fit_group(a, np.array([[m.x, m.y, m.radius, mu0]]), blur, noise, mask_out, invalid, box=box)
+    fit = fit_group(a, np.array([[m.x, m.y, m.radius, mu0]]), blur, noise, mask_out, invalid, box=box,
+                    quadratic=quadratic)
     if fit is None:
         return None
-    kappa = max(kappa, 1.0)
     wgt = mask_weights(box, mask_out, blur, invalid)
     disc = _disc(R1)
     best = None
     while len(fit[1]) < min(_MAX_PARTS, int(np.ceil(ratio)) + 1):
         _, sph, _, bg, chi2, n = fit
-        resid = (a[q0:q1, c0:c1] - _model(box, sph, bg, blur)) * wgt
+        resid = (a[q0:q1, c0:c1] - group_model(box, sph, bg, blur)) * wgt
         score = cv2.filter2D(resid.astype(np.float32), -1, disc, borderType=cv2.BORDER_CONSTANT)
         iy, ix = np.unravel_index(int(np.argmax(score)), score.shape)
         new = np.array([[c0 + ix, q0 + iy, R1, mu0]])
@@ -75,7 +121,7 @@ def split(a: np.ndarray, m, R1: float, mu1, blur: float, noise: float, kappa: fl
             starts.append(twin)
         nxt = None
         for st in starts:
-            f = fit_group(a, st, blur, noise, mask_out, invalid, box=box)
+            f = fit_group(a, st, blur, noise, mask_out, invalid, box=box, quadratic=quadratic)
             # a part that wandered out of the blob went to fit something else
             if f is not None and np.all(np.hypot(f[1][:, 0] - m.x, f[1][:, 1] - m.y) <= reach) \
                     and (nxt is None or f[4] < nxt[4]):
@@ -91,22 +137,19 @@ def split(a: np.ndarray, m, R1: float, mu1, blur: float, noise: float, kappa: fl
             break
         fit = nxt
         best = nxt[1]
+    if best is None:
+        return None
     # the parts must explain the blob to within twice the pixel noise (a
     # rod or a plate's corner is no sum of spheres; on an independent helix
-    # every right split reached chi2/n = 0.9-1.7)
-    if best is None or fit[4] / fit[5] > _ADEQUATE:
-        return None
-    ok_R = (best[:, 2] > 0.6 * R1) & (best[:, 2] < 1.6 * R1)
-    ok_mu = True if mu1 is None else (best[:, 3] > 0.5 * mu1) & (best[:, 3] < 2.0 * mu1)
-    return best if np.all(ok_R & ok_mu) else None
-
-
-def _model(box, sph: np.ndarray, bg: np.ndarray, blur: float) -> np.ndarray:
-    """Spheres (frame px) plus the background plane on the patch ``box``."""
-    c0, q0, c1, q1 = box
-    h, w = q1 - q0, c1 - c0
-    yy, xx = np.mgrid[0:h, 0:w]
-    return render_box(box, sph, blur) + bg[0] + bg[1] * (xx - w / 2) + bg[2] * (yy - h / 2)
+    # every right split reached chi2/n = 0.9-1.7), or, on a background that
+    # holds structure of its own (a wall's edge the profile follows only
+    # roughly), as well as the background model explains the patch around them
+    on, off = disc_misfit(a, fit, blur, noise, mask_out, invalid)
+    floor = off if np.isfinite(off) else 0.0
+    adequate = max(fit[4] / fit[5], on) <= max(_ADEQUATE, floor) and bool(np.all(_plausible(best, R1, mu1)))
+    if keep_inadequate:
+        return best, adequate
+    return best if adequate else None
 
 
 def _disc(R: float) -> np.ndarray:
