@@ -21,7 +21,7 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-from .background import fit_profile
+from .background import fit_profile, structured
 from .overlap import disc_misfit, fit_group, group_box, group_model, mask_weights, render_box
 
 # the chi-square fall a new sphere must give, as a fraction of its own model
@@ -58,7 +58,9 @@ def split(a: np.ndarray, m, R1: float, mu1, blur: float, noise: float, kappa: fl
     mu0 = mu1 if mu1 is not None else m.mu_px
     grow = dict(m=m, R1=R1, mu1=mu1, mu0=mu0, ratio=ratio, blur=blur, noise=noise, kappa=max(kappa, 1.0),
                 mask_out=mask_out, invalid=invalid)
-    if "clutter" not in m.flags:
+    # (a crowd flags its blobs clutter too: only a background a quadratic does
+    # not follow, its neighbours masked, is an edge)
+    if "clutter" not in m.flags or not structured(a, m.x, m.y, m.radius, blur, noise, invalid, mask_out):
         parts = _grow(a, **grow)
         return None if parts is None else (parts, False)
     start = np.array([[m.x, m.y, m.radius, mu0]])
@@ -144,9 +146,10 @@ def _grow(a, m, R1, mu1, mu0, ratio, blur, noise, kappa, mask_out, invalid, quad
     # every right split reached chi2/n = 0.9-1.7), or, on a background that
     # holds structure of its own (a wall's edge the profile follows only
     # roughly), as well as the background model explains the patch around them
-    on, off = disc_misfit(a, fit, blur, noise, mask_out, invalid)
-    floor = off if np.isfinite(off) else 0.0
-    adequate = max(fit[4] / fit[5], on) <= max(_ADEQUATE, floor) and bool(np.all(_plausible(best, R1, mu1)))
+    adequate = bool(np.all(_plausible(best, R1, mu1))) and fit[4] / fit[5] <= _ADEQUATE
+    if not adequate and np.all(_plausible(best, R1, mu1)):
+        on, off = disc_misfit(a, fit, blur, noise, mask_out, invalid)
+        adequate = on <= max(_ADEQUATE, off if np.isfinite(off) else 0.0)
     if keep_inadequate:
         return best, adequate
     return best if adequate else None
