@@ -167,6 +167,7 @@ def measure_crowded(a: np.ndarray, kept: list[Blob], merged: list[Blob], opt: De
     out: list = list(blobs)
     new = set(range(len(kept), len(blobs)))     # split parts and seeds: kept only once measured
     trial = set(range(len(kept) + len(parts), len(blobs)))   # seeds: kept only if the joint fit needs them
+
     def measure(g: list, only: int | None = None) -> None:
         """Group ``g`` (indices into blobs) measured together; its members'
         outcomes written to ``out`` (with ``only``: that member's alone)."""
@@ -230,11 +231,6 @@ def measure_crowded(a: np.ndarray, kept: list[Blob], merged: list[Blob], opt: De
                 if measured:
                     new.discard(i)
 
-    def _small(g, s0) -> bool:
-        # over a long chain one direction of level lines does not hold, and the fit costs seconds
-        gx, gy = s0[:, 0].mean(), s0[:, 1].mean()
-        return len(g) <= 5 and float(np.max(np.hypot(s0[:, 0] - gx, s0[:, 1] - gy) + s0[:, 2])) <= 5 * np.max(s0[:, 2])
-
     def _on_structure(a, g, s0) -> bool:
         """Whether the background around the group (its shadows and their
         neighbours masked) holds more than a quadratic follows (a member's
@@ -259,6 +255,14 @@ def measure_crowded(a: np.ndarray, kept: list[Blob], merged: list[Blob], opt: De
     out = [b for i, b in enumerate(out) if b is not None and i not in new]
     return [_beside_edge(a, b, opt, noise, invalid, _neighbours(b, out, peaks, opt)) if "overlap" not in b.flags
             else b for b in out]
+
+
+def _small(g: list, s0: np.ndarray) -> bool:
+    """A group of at most five shadows (x, y, R rows of ``s0``) within five
+    radii: over a longer chain one direction of an edge's level lines does
+    not hold, and the joint fit costs seconds."""
+    gx, gy = s0[:, 0].mean(), s0[:, 1].mean()
+    return len(g) <= 5 and float(np.max(np.hypot(s0[:, 0] - gx, s0[:, 1] - gy) + s0[:, 2])) <= 5 * np.max(s0[:, 2])
 
 
 def _member(work, b0: Blob, sph: np.ndarray, sig: np.ndarray, opt: DetectOptions, noise: float, invalid, others,
