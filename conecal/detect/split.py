@@ -91,15 +91,14 @@ def _plausible(sph: np.ndarray, R1: float, mu1) -> np.ndarray:
     return ok if mu1 is None else ok & (sph[:, 3] > 0.5 * mu1) & (sph[:, 3] < 2.0 * mu1)
 
 
-def _grow(a, m, R1, mu1, mu0, ratio, blur, noise, kappa, mask_out, invalid, quadratic=False, keep_inadequate=False):
+def _grow(a, m, R1, mu1, mu0, ratio, blur, noise, kappa, mask_out, invalid, keep_inadequate=False):
     """One sphere, then one more at a time (see the module docstring): the
     parts (k, 4), or None; with ``keep_inadequate`` (parts, adequate) when
     some were found, even if they do not explain the blob."""
     box = group_box(a.shape, np.array([[m.x, m.y, 1.5 * m.radius + 2, 0.0]]), blur)
     c0, q0, c1, q1 = box
     reach = 1.5 * m.radius + 2
-    fit = fit_group(a, np.array([[m.x, m.y, m.radius, mu0]]), blur, noise, mask_out, invalid, box=box,
-                    quadratic=quadratic)
+    fit = fit_group(a, np.array([[m.x, m.y, m.radius, mu0]]), blur, noise, mask_out, invalid, box=box)
     if fit is None:
         return None
     wgt = mask_weights(box, mask_out, blur, invalid)
@@ -123,7 +122,7 @@ def _grow(a, m, R1, mu1, mu0, ratio, blur, noise, kappa, mask_out, invalid, quad
             starts.append(twin)
         nxt = None
         for st in starts:
-            f = fit_group(a, st, blur, noise, mask_out, invalid, box=box, quadratic=quadratic)
+            f = fit_group(a, st, blur, noise, mask_out, invalid, box=box)
             # a part that wandered out of the blob went to fit something else
             if f is not None and np.all(np.hypot(f[1][:, 0] - m.x, f[1][:, 1] - m.y) <= reach) \
                     and (nxt is None or f[4] < nxt[4]):
