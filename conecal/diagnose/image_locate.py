@@ -47,6 +47,11 @@ UNITS = {"gain": "fraction of the modelled attenuation", "scatter": "fraction of
          "edge": "px^2 (Gaussian variance added)", "ghost": "fraction of the previous frame"}
 WORDS = {"gain": "the shadows read {sense} than modelled", "scatter": "an intensity is added under the shadows",
          "edge": "the shadows' edges are {sense} than modelled", "ghost": "a ghost of the previous frame"}
+# what each curve (and each residual profile, by its variable) measures, as a located item's component
+COMPONENTS = {"gain": "each shadow's depth (local gain)", "scatter": "an intensity added under the shadows",
+              "edge": "each shadow's edge width", "ghost": "a ghost at the previous frame's position",
+              "radius": "the shadows' mean edge profile",
+              "attenuation": "recorded against modelled attenuation (the value transfer)"}
 # Smallest located sizes, about twice what clean scans (conecal's and an independent simulator's) show
 # and what a named effect leaves behind when it is the right one. Profiles: in units of the pixel noise
 # (0.1 of it carries 1 % of the noise variance; clean scans of an independent simulator read 0.02 and 0.10,

@@ -2,19 +2,13 @@
 
 from __future__ import annotations
 
-from .image_locate import describe as describe_image
-
-# what each located image curve measures, as a component's name
-IMAGE_COMPONENTS = {"gain": "each shadow's depth (local gain)", "scatter": "an intensity added under the shadows",
-                    "edge": "each shadow's edge width", "ghost": "a ghost at the previous frame's position",
-                    "radius": "the shadows' mean edge profile",
-                    "attenuation": "recorded against modelled attenuation (the value transfer)"}
+from .image_locate import COMPONENTS, describe as describe_image
 
 
 def image_located(item: dict) -> dict:
     """A located image item as an entry of the diagnosis' top-level ``located``."""
     key = item["variable"] if item["curve"] == "residual" else item["curve"]
-    return dict(item, level="image", component=IMAGE_COMPONENTS[key], description=describe_image(item))
+    return dict(item, level="image", component=COMPONENTS[key], description=describe_image(item))
 
 
 def merge_levels(geometric: dict, image: dict | None) -> dict:
