@@ -18,7 +18,7 @@ import numpy as np
 
 from .frame import Blob, DetectOptions, detect_blobs, refine
 from .background import fit_profile, structured
-from .overlap import disc_misfit, fit_group, group_box, groups_of, render_box
+from .overlap import disc_misfit, fit_group, group_box, groups_of, joint_sigma, render_box
 from .split import peaks_in, split
 
 # the cone-beam shadow's centroid and the model circle's centre differ by
@@ -273,9 +273,7 @@ def _member(work, b0: Blob, sph: np.ndarray, sig: np.ndarray, opt: DetectOptions
     ``sig``: its joint-fit sphere (x, y, R, mu) and σ."""
     b = refine(work, sph[0], sph[1], sph[2], opt, others, noise, invalid)
     x_fit, y_fit = sph[:2]
-    # the joint fit treats pixels as independent: correlated noise scales it
-    # px; an undetermined joint fit's sigma can be 1e200, whose square overflows
-    s_fit = float(min(np.hypot(*np.minimum(np.abs(sig[:2]), 1e6)) / np.sqrt(2) * np.sqrt(opt.noise_kappa), 1e6))
+    s_fit = joint_sigma(sig, opt.noise_kappa)
     if b is not None and "clutter" in b0.flags and np.hypot(b.x - x_fit, b.y - y_fit) <= 0.5 * sph[2]:
         # an edge's background beside it (its neighbours' models removed):
         # the joint fit's plane did not follow it, so its centre is no check
@@ -354,7 +352,7 @@ def _edge_model(work, b: Blob, b2: Blob | None, sph: np.ndarray, opt: DetectOpti
         return b
     _, s2, sig, _, chi2, n_pix = fit
     x, y, R, mu = s2[0]
-    s_fit = float(np.hypot(*np.minimum(np.abs(sig[0, :2]), 1e6)) / np.sqrt(2) * np.sqrt(opt.noise_kappa))
+    s_fit = joint_sigma(sig[0], opt.noise_kappa)
     on, off = disc_misfit(work, fit, opt.blur_px, noise, others, invalid)
     if (on > max(_EDGE_MODEL_CHI2, off) or not 0.25 * opt.diameter_px[0] <= R <= 0.55 * opt.diameter_px[1]
             or np.hypot(x - sph[0, 0], y - sph[0, 1]) > 0.5 * R or not np.isfinite(s_fit) or s_fit > 0.5):

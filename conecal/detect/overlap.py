@@ -127,13 +127,13 @@ def fit_group(a: np.ndarray, spheres: np.ndarray, blur: float, noise: float, mas
     s0[:, 0] -= c0
     s0[:, 1] -= q0
     k = len(spheres)
-    # the plane's start from the patch's border, where the spheres are not
+    # the background's start from the patch's border, where the spheres are not
     edge = np.zeros((h, w), bool)
     edge[[0, -1], :] = edge[:, [0, -1]] = True
     edge &= wgt > 0
     B = background_basis(h, w, quadratic)
     on = edge.ravel()
-    plane = np.linalg.lstsq(B[on], roi.ravel()[on], rcond=None)[0] if on.sum() > 2 * B.shape[1] else \
+    bg0 = np.linalg.lstsq(B[on], roi.ravel()[on], rcond=None)[0] if on.sum() > 2 * B.shape[1] else \
         np.r_[np.median(roi), np.zeros(B.shape[1] - 1)]
     wv = np.sqrt(wgt.ravel()) / noise
 
@@ -153,7 +153,7 @@ def fit_group(a: np.ndarray, spheres: np.ndarray, blur: float, noise: float, mas
     for i, (x, y, R, mu) in enumerate(s0):
         params += [Parameter(f"x{i}", x, scale=0.1), Parameter(f"y{i}", y, scale=0.1),
                    Parameter(f"R{i}", R, scale=0.1), Parameter(f"mu{i}", max(mu, 1e-6), scale=max(mu, 1e-6) * 0.05)]
-    params += [Parameter(f"b{j}", float(c)) for j, c in enumerate(plane)]
+    params += [Parameter(f"b{j}", float(c)) for j, c in enumerate(bg0)]
     try:
         # unbounded, so the normal-equations path (an SVD of J per step cost 10x)
         res = solve(params, residuals, jacobian, max_nfev=60, tol=1e-8, scale_covariance=True, large=True)
@@ -177,6 +177,13 @@ def group_model(box, sph: np.ndarray, bg: np.ndarray, blur: float) -> np.ndarray
     return render_box(box, sph, blur) + (background_basis(h, w, len(bg) > 3) @ bg).reshape(h, w)
 
 
+def joint_sigma(sig: np.ndarray, kappa: float) -> float:
+    """A joint fit's isotropic centre σ (px) from its x, y σ (``sig[:2]``):
+    the fit treats pixels as independent, so correlated noise (``kappa``)
+    scales it; an undetermined fit's σ can be 1e200, whose square overflows."""
+    return float(min(np.hypot(*np.minimum(np.abs(sig[:2]), 1e6)) / np.sqrt(2) * np.sqrt(kappa), 1e6))
+
+
 def disc_misfit(a: np.ndarray, fit, blur: float, noise: float, mask_out=(), invalid=None) -> tuple[float, float]:
     """Mean squared residual per pixel, in units of the pixel noise's
     variance, of a :func:`fit_group` result on ``a``: on the spheres' discs
@@ -187,12 +194,13 @@ def disc_misfit(a: np.ndarray, fit, blur: float, noise: float, mask_out=(), inva
     box, sph, _, bg, _, _ = fit
     c0, q0, c1, q1 = box
     h, w = q1 - q0, c1 - c0
-    z2 = ((a[q0:q1, c0:c1] - group_model(box, sph, bg, blur)) / noise) ** 2 * mask_weights(box, mask_out, blur, invalid)
+    wgt = mask_weights(box, mask_out, blur, invalid)
+    z2 = ((a[q0:q1, c0:c1] - group_model(box, sph, bg, blur)) / noise) ** 2 * wgt
     yy, xx = np.mgrid[q0:q1, c0:c1]
     on = np.zeros((h, w), bool)
     for x, y, R, _ in sph:
         on |= (xx - x) ** 2 + (yy - y) ** 2 <= (R + 2 * blur + 1) ** 2
-    off = ~on & (mask_weights(box, mask_out, blur, invalid) > 0)
+    off = ~on & (wgt > 0)
     return (float(z2[on].mean()) if on.any() else np.inf), (float(z2[off].mean()) if off.sum() >= 20 else np.inf)
 
 

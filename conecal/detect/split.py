@@ -145,8 +145,9 @@ def _grow(a, m, R1, mu1, mu0, ratio, blur, noise, kappa, mask_out, invalid, keep
     # every right split reached chi2/n = 0.9-1.7), or, on a background that
     # holds structure of its own (a wall's edge the profile follows only
     # roughly), as well as the background model explains the patch around them
-    adequate = bool(np.all(_plausible(best, R1, mu1))) and fit[4] / fit[5] <= _ADEQUATE
-    if not adequate and np.all(_plausible(best, R1, mu1)):
+    plausible = bool(np.all(_plausible(best, R1, mu1)))
+    adequate = plausible and fit[4] / fit[5] <= _ADEQUATE
+    if plausible and not adequate:
         on, off = disc_misfit(a, fit, blur, noise, mask_out, invalid)
         adequate = on <= max(_ADEQUATE, off if np.isfinite(off) else 0.0)
     if keep_inadequate:
