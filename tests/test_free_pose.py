@@ -191,7 +191,18 @@ def test_cli_fit_pose_free_writes_poses_and_distortion_map(tmp_path):
     doc = json.loads((tmp_path / "p.json").read_text())
     assert doc["format"] == "conecal-poses/1" and doc["motion"] == "free"
     assert doc["summary"]["ok"] == 10 and doc["intrinsics"]["sdd"]["sigma"] > 0
+    assert doc["summary"]["adequacy"].startswith("at the noise floor") and "not at" not in r.output
     assert all(f["status"] == "ok" and f["matched"] for f in doc["frames"])
+    # the same centres stated 4x too precise: the model is not at the floor, and says so
+    for f in mdoc["frames"]:
+        for m in f["markers"]:
+            m["sigma"] /= 4
+    (tmp_path / "m4.json").write_text(json.dumps(mdoc))
+    r = CliRunner().invoke(cli, ["fit-pose", str(d), "--markers", str(tmp_path / "m4.json"), "-o",
+                                 str(tmp_path / "p4.json"), "--distortion", "radial+S+tangential"])
+    assert r.exit_code == 0 and "not at the noise floor" in r.output, r.output
+    words = json.loads((tmp_path / "p4.json").read_text())["summary"]["adequacy"]
+    assert 3.0 < float(words.split("px RMS, ")[1].split("x the")[0]) < 4.5, words
     r = CliRunner().invoke(cli, ["export", str(tmp_path / "p.json"), "--format", "distortion", "-o",
                                  str(tmp_path / "d.tif")])
     assert r.exit_code == 0, r.output
@@ -305,3 +316,78 @@ def test_a_sphere_behind_another_is_reported_hidden_not_missing():
     # seen, it is no longer hidden; a sphere far from every shadow is missing, not hidden
     assert hidden_behind(g, pts, 1.0, [True, True, True, False], ids) == []
     assert hidden_behind(g, pts, 1.0, [True, True, False, False], ids) == []
+
+
+def _grid_views(R, t, pitch, noise, seed):
+    """Observations of a 5x5 grid (``pitch`` mm) in poses ``R``, ``t``."""
+    from conecal.simulate.carm import grid_phantom
+
+    cam = _camera()
+    shape = describe_phantom(grid_phantom(5, pitch), np.arange(25), radius=0.0)
+    F, n = len(R), len(shape.points)
+    slot, sph = np.repeat(np.arange(F), n), np.tile(np.arange(n), F)
+    X = np.einsum("nij,nj->ni", R[slot], shape.points[sph]) + t[slot]
+    xy = cam.project(X) + np.random.default_rng(seed).normal(0, noise, (len(slot), 2))
+    obs = Observations(slot, sph, xy, np.full(len(slot), noise))
+    return cam, shape, obs, adjust(family_named("none"), cam, obs, shape.points, 0.0, R, t)
+
+
+def test_a_near_frontal_grid_is_one_pose_not_a_mirror_ambiguity():
+    """A small grid (12 mm) tilted 2.3 deg: its mirror pose fits as well but is
+    turned by 4.6 deg, within three times the pose's own sigma (1.9 deg): one
+    broad solution, so the frame is ok with its rotation sigma widened by half
+    the turn. Tilted 4.6 deg, the mirror (9.2 deg away) is a second solution:
+    ambiguous."""
+    from conecal.calib.run import FreeOptions, _mirrors
+
+    poses = random_poses(np.random.default_rng(4), 8, 40.0, 8.0, 10.0)
+    R, t = poses.R.copy(), poses.t.copy()
+    status = []
+    for tilt in (0.04, 0.08):
+        R[0] = rotvec_to_matrix([tilt, 0.0, 0.0]) @ rotvec_to_matrix([0.0, 0.0, 0.1])
+        cam, shape, obs, b = _grid_views(R, t, 3.0, 0.05, 1)
+        frames = [{"status": "ok"} for _ in R]
+        _mirrors(b, frames, obs, shape, 0.0, FreeOptions())
+        assert frames[0]["mirror_delta_chi2"] < 25
+        status.append(frames[0])
+    assert status[0]["status"] == "ok"
+    assert np.degrees(np.linalg.norm(status[0]["mirror_spread_rad"])) == pytest.approx(2.3, abs=0.3)
+    assert status[1]["status"].startswith("ambiguous: the mirror pose"), status[1]
+
+
+def test_priors_weigh_against_the_datas_real_scatter():
+    """detect's sigma 10x too small (real images): a per-frame offset that the
+    views barely measure keeps its prior's sigma; it is not inflated by the
+    reduced chi-square as the data's is."""
+    from conecal.simulate.carm import ball_phantom
+
+    cam = _camera()
+    rng = np.random.default_rng(12)
+    pts = ball_phantom(rng, n=24)
+    F = 10
+    poses = random_poses(rng, F, 40.0, 20.0, 10.0)
+    slot, sph = np.repeat(np.arange(F), len(pts)), np.tile(np.arange(len(pts)), F)
+    X = np.einsum("nij,nj->ni", poses.R[slot], pts[sph]) + poses.t[slot]
+    xy = cam.project(X) + rng.normal(0, 0.3, (len(slot), 2))
+    obs = Observations(slot, sph, xy, np.full(len(slot), 0.03))
+    b = adjust(family_named("none"), cam, obs, pts, 0.0, poses.R, poses.t, frame_intrinsics={"sdd": 5.0})
+    assert b.covariance_scale > 50
+    sig = [b.sigma(f"frame{s}_sdd_offset") for s in range(F)]
+    assert max(sig) <= 5.0 * 1.01, sig
+
+
+def test_diagnose_projects_a_frame_with_its_own_intrinsics():
+    """A result with --frame-intrinsics: diagnose predicts each frame with that
+    frame's sdd and principal point, not the shared ones."""
+    from conecal.diagnose.free import _prediction
+
+    cam = _camera()
+    shared = {n: {"value": float(v), "sigma": 1.0} for n, v in zip(("sdd", "c0", "r0"), cam.intrinsics())}
+    own = dict(shared, c0={"value": cam.c0 + 12.0, "sigma": 1.0}, sdd={"value": cam.sdd + 30.0, "sigma": 1.0})
+    doc = {"intrinsics": shared, "source": [0.0, 0.0, -cam.sod],
+           "detector": {"pixel_pitch": list(cam.pitch), "shape": list(cam.shape)}}
+    frame = {"R": np.eye(3).tolist(), "t": [5.0, -3.0, 0.0], "intrinsics": own}
+    P = np.array([[0.0, 0.0, 0.0], [10.0, 5.0, 2.0]])
+    pred, _ = _prediction(doc, frame, P, 0.0)
+    expect = cam.with_intrinsics([cam.sdd + 30.0, cam.c0 + 12.0, cam.r0]).project(P + [5.0, -3.0, 0.0])
+    assert np.allclose(pred, expect, atol=1e-9)

@@ -99,6 +99,8 @@ class Bundle:
     # from the shared value, and the offsets (F, 3) in INTRINSICS order
     frame_intrinsics: dict = field(default_factory=dict)
     offsets: np.ndarray | None = None
+    # the factor the priors were scaled by: sqrt(reduced chi-square) of the fit
+    prior_scale: float = 1.0
 
     def frame_camera(self, slot: int) -> Camera:
         """The camera of frame ``slot``: the shared intrinsics plus its offsets."""
@@ -318,36 +320,56 @@ def adjust(family: Family, camera: Camera, obs: Observations, points: np.ndarray
     prior_J = np.vstack([prior_J, np.zeros((len(off_cols), len(x)))])
     prior_J[np.arange(len(off_cols)) + len(prior_J) - len(off_cols), off_cols] = off_w
 
+    # Priors weigh against the data at the data's real scatter: where detect's
+    # sigma is too small (real images: the model leaves several times it), the
+    # data are whitened by that sigma times sqrt(reduced chi-square), so a
+    # prior is scaled up by the same factor and refitted once (the full fits
+    # only; a held-out refit keeps its start's factor).
+    ps = start.prior_scale if start is not None else 1.0
+
     def prior_r(x):
         c = (x[3:5] - centre0) * prior_w if family.free_centre else np.zeros(0)
-        return np.concatenate([c, x[off_cols] * off_w])
+        return ps * np.concatenate([c, x[off_cols] * off_w])
 
     prior_sp = sp.csr_matrix(prior_J)
     inv_sig = np.repeat(1.0 / obs.sigma, 2)
+
+    def markers_chi2(fit):
+        res = model(fit.x)[0] - obs.xy
+        fit.chi2 = float(np.sum((res / sig) ** 2))
+        fit.dof = int(2 * N - fit.free.sum())
+        return res
+
     fit = None
-    for k_pass in range(passes):
-        cam, d, blocks, Rk = unpack(x)
-        X = np.einsum("nij,nj->ni", Rk[slot], pts) + blocks[slot, 3:6]
-        new_bias = shadow_bias(cam.geometry(), X, radius, coarse=True) if radius else np.zeros((N, 2))
-        # a pass that would move the bias by less than a thousandth of a pixel
-        # would end where the last one did
-        if k_pass and float(np.abs(new_bias - bias).max()) < 1e-3:
-            break
-        bias[:] = new_bias
+    for k_pass in range(passes + 1):
+        if k_pass == passes:
+            # the prior's factor, once, from the markers' reduced chi-square
+            s = float(np.sqrt(max(1.0, fit.reduced_chi2))) if np.isfinite(fit.reduced_chi2) else 1.0
+            if not (covariance and prior_J.shape[0] and abs(s / ps - 1) > 0.2):
+                break
+            ps = s
+        else:
+            cam, d, blocks, Rk = unpack(x)
+            X = np.einsum("nij,nj->ni", Rk[slot], pts) + blocks[slot, 3:6]
+            new_bias = shadow_bias(cam.geometry(), X, radius, coarse=True) if radius else np.zeros((N, 2))
+            # a pass that would move the bias by less than a thousandth of a pixel
+            # would end where the last one did
+            if k_pass and float(np.abs(new_bias - bias).max()) < 1e-3:
+                continue
+            bias[:] = new_bias
         params = [Parameter(p.name, v, scale=p.scale, unit=p.unit, undetermined_sigma=np.inf) for p, v in zip(params, x)]
         fit = solve(params, lambda x: np.concatenate([((model(x)[0] - obs.xy) / sig).ravel(), prior_r(x)]),
-                    lambda x: sp.vstack([sp.diags(inv_sig) @ model(x, True, sparse=True)[1], prior_sp], format="csr"),
+                    lambda x: sp.vstack([sp.diags(inv_sig) @ model(x, True, sparse=True)[1], ps * prior_sp],
+                                        format="csr"),
                     max_nfev=max_nfev, tol=1e-8, large=True, covariance=covariance)
         x = fit.x
+        markers_chi2(fit)
     cam, d, blocks, Rk = unpack(x)
-    m, _ = model(x)
-    res = m - obs.xy
     # the reduced chi-square of the markers alone (the prior rows are not data)
-    fit.chi2 = float(np.sum((res / sig) ** 2))
-    fit.dof = int(2 * N - fit.free.sum())
+    res = markers_chi2(fit)
     scale = max(1.0, fit.reduced_chi2) if np.isfinite(fit.reduced_chi2) else 1.0
     return Bundle(family, cam, d, blocks[:, 6:npd].copy(), Rk, blocks[:, 3:6].copy(), res, fit, scale, names,
-                  slot.copy(), dict(frame_intrinsics), offsets(blocks) if fi_idx else None)
+                  slot.copy(), dict(frame_intrinsics), offsets(blocks) if fi_idx else None, ps)
 
 
 FAMILIES = (
@@ -356,6 +378,8 @@ FAMILIES = (
     Family("radial+S", "radial_tangential", ("k1", "k2", "s"), free_centre=True),
     Family("radial+S+tangential", "radial_tangential", ("k1", "k2", "p1", "p2", "s"), free_centre=True),
     Family("radial+S per frame", "radial_tangential", ("k1", "k2"), ("s",), free_centre=True),
+    Family("radial+S+tangential, S per frame", "radial_tangential", ("k1", "k2", "p1", "p2"), ("s",),
+           free_centre=True),
     Family("polynomial3", "polynomial", tuple(Distortion.polynomial((2, 2), 3).names), degree=3),
 )
 

@@ -247,6 +247,21 @@ def _mirrors(b: Bundle, usable, obs: Observations, shape, radius, opt: FreeOptio
         if apart < ang / 2:
             continue
         fr["mirror_delta_chi2"] = chi2 - chi1
+        # a near-frontal plate's mirror pose is turned by less than three times
+        # this pose's own sigma about that axis: one broad solution, not two;
+        # its sigma is widened by half the turn (document.py)
+        unit = axis / np.linalg.norm(axis)
+        if ang < 3 * _rotation_sigma(b, s, unit):
+            fr["mirror_spread_rad"] = unit * ang / 2
+            continue
         if chi2 - chi1 < opt.mirror_chi2:
             fr["status"] = (f"ambiguous: the mirror pose (normal turned {np.degrees(ang):.1f} deg about the line of "
                             f"sight) fits within chi2 {chi2 - chi1:.1f} of this one")
+
+
+def _rotation_sigma(b: Bundle, slot: int, axis: np.ndarray) -> float:
+    """Sigma (rad) of frame ``slot``'s rotation about the lab ``axis`` (unit)."""
+    free = [n for n, f in zip(b.fit.names, b.fit.free) if f]
+    idx = [free.index(f"frame{slot}_{n}") for n in ("rx", "ry", "rz")]
+    C = b.fit.covariance[np.ix_(idx, idx)] * b.covariance_scale
+    return float(np.sqrt(max(axis @ C @ axis, 0.0)))

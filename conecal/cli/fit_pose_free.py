@@ -69,6 +69,8 @@ def run_free(s, scan, mdoc, markers, geometry, output, max_rms, distortion, fram
          f"rejected; reprojection RMS {sm['rms_px']:.4f} px")
     for reason, n in Counter(sm["reasons"]).most_common():
         info(f"  {n} frame(s): {reason}")
+    if not sm["adequacy"].startswith("at the noise floor"):
+        info(sm["adequacy"])
     d = doc["distortion"]
     info(f"sdd {it['sdd']['value']:.3f} +- {it['sdd']['sigma']:.3f} mm, principal point "
          f"({it['c0']['value']:.2f} +- {it['c0']['sigma']:.2f}, {it['r0']['value']:.2f} +- {it['r0']['sigma']:.2f}) px; "

@@ -53,7 +53,8 @@ class _FreeView:
 
 
 def _prediction(doc, frame, P, radius):
-    it = doc["intrinsics"]
+    # a frame with its own intrinsics (--frame-intrinsics) is projected with them
+    it = frame.get("intrinsics") or doc["intrinsics"]
     det = doc["detector"]
     cam = Camera(it["sdd"]["value"], it["c0"]["value"], it["r0"]["value"], float(-doc["source"][2]),
                  tuple(det["pixel_pitch"]), tuple(det["shape"]))
