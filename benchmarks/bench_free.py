@@ -26,6 +26,7 @@ import json
 import sys
 import tempfile
 import time
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -104,13 +105,31 @@ def _heldout(truth: dict) -> list:
     return out
 
 
-def run_case(make, name: str, seed: int, root: Path, frame_intrinsics: tuple = ()) -> dict:
+def _misplace_cad(csv: Path, sd_mm: float, seed: int) -> None:
+    """The phantom file lies: each sphere's CAD position is off its true one by
+    N(0, sd_mm) per axis (in the plane only for a planar phantom)."""
+    rows = [line.split(",") for line in csv.read_text().splitlines()[1:]]
+    P = np.array([[float(v) for v in r[1:]] for r in rows])
+    rng = np.random.default_rng(1000 + seed)
+    e = rng.normal(0, sd_mm, P.shape)
+    if np.ptp(P[:, 2]) == 0:
+        e[:, 2] = 0
+    P = P + e
+    csv.write_text("id,x,y,z\n" + "".join(f"{r[0]},{p[0]:.6f},{p[1]:.6f},{p[2]:.6f}\n" for r, p in zip(rows, P)))
+
+
+def run_case(make, name: str, seed: int, root: Path, frame_intrinsics: tuple = (), cad_error: float = 0.0,
+             phantom_sigma: float | None = None) -> dict:
     out = root / f"{name}_{seed}"
     label = make(name, seed, out)
+    if cad_error:
+        _misplace_cad(out / "scan" / "phantom.csv", cad_error, seed)
     scan = load_scan(out / "scan")
     mdoc = json.loads((out / "markers.json").read_text())
     truth = json.loads((out / "truth.json").read_text())
     opt = FreeOptions(frame_intrinsics=frame_intrinsics)
+    if phantom_sigma is not None:
+        opt = replace(opt, phantom_sigma_mm=phantom_sigma)
     t0 = time.perf_counter()
     res = calibrate_free(scan, mdoc, scan.nominal_geometry(), opt)
     t_conecal = time.perf_counter() - t0
@@ -184,6 +203,7 @@ def run_case(make, name: str, seed: int, root: Path, frame_intrinsics: tuple = (
             "whitened_cover_1sigma": float(np.mean(np.abs(white) < 1)) if len(white) else float("nan"),
             "whitened_chi2_per_n": float(np.mean(white ** 2)) if len(white) else float("nan"),
             "family": dist["family"] if dist else "none",
+            "phantom_refined": bool(doc["phantom_refinement"] and doc["phantom_refinement"]["chosen"]),
             "field_max_px": dist["max_displacement_px"] if dist else 0.0,
             "truth_distortion": label.get("distortion_kind"), "time_conecal_s": t_conecal, "time_conecal_ba_s": t_ba,
             **cvr}
@@ -279,6 +299,9 @@ def main(argv=None) -> int:
     ap.add_argument("--gen", default="carm_indep", help="generator module in benchmarks/ (carm_indep, carm_gen)")
     ap.add_argument("--json", default=None, help="also write all rows here")
     ap.add_argument("--frame-intrinsics", default="", help="e.g. sdd,c0,r0: freed per frame (prior sigma 5 mm / 5 px)")
+    ap.add_argument("--cad-error", type=float, default=0.0,
+                    help="mm: phantom.csv's spheres off their true positions by N(0, this) per axis")
+    ap.add_argument("--phantom-sigma", type=float, default=None, help="mm: FreeOptions.phantom_sigma_mm (0: never refine)")
     a = ap.parse_args(argv)
     if a.own:
         make, cases = own_case, a.cases or ["grid_ii", "grid_none", "ball_ii"]
@@ -295,7 +318,7 @@ def main(argv=None) -> int:
         for name in cases:
             for seed in a.seeds:
                 fi = tuple((n, 5.0) for n in a.frame_intrinsics.split(",") if n)
-                row = run_case(make, name, seed, Path(tmp), fi)
+                row = run_case(make, name, seed, Path(tmp), fi, a.cad_error, a.phantom_sigma)
                 rows.append(row)
                 print(json.dumps({k: (round(v, 4) if isinstance(v, float) else v) for k, v in row.items()}))
     ok = sum(r["ok"] for r in rows)

@@ -101,6 +101,14 @@ class Bundle:
     offsets: np.ndarray | None = None
     # the factor the priors were scaled by: sqrt(reduced chi-square) of the fit
     prior_scale: float = 1.0
+    # the phantom refined: each point's offset (P, 3) mm from its CAD position,
+    # and the prior sigma (mm) it was fitted with; None / 0: CAD as given
+    point_offsets: np.ndarray | None = None
+    points_sigma: float = 0.0
+
+    def phantom(self, points: np.ndarray) -> np.ndarray:
+        """The phantom's points (P, 3) mm as this bundle has them."""
+        return points if self.point_offsets is None else points + self.point_offsets
 
     def frame_camera(self, slot: int) -> Camera:
         """The camera of frame ``slot``: the shared intrinsics plus its offsets."""
@@ -155,7 +163,8 @@ def _distort(b: Bundle, q, slot):
 def adjust(family: Family, camera: Camera, obs: Observations, points: np.ndarray, radius: float,
            R0: np.ndarray, t0: np.ndarray, start: Bundle | None = None, passes: int = 2,
            max_nfev: int = 60, covariance: bool = True, probe: bool = False,
-           frame_intrinsics: dict | None = None) -> Bundle:
+           frame_intrinsics: dict | None = None, points_sigma: float | None = None,
+           centre_sigma: float = 0.0) -> Bundle:
     """Fit all poses, the intrinsics and ``family``'s distortion to ``obs``.
 
     ``R0``, ``t0``: starting poses per slot; ``start``: a solved bundle whose
@@ -172,6 +181,15 @@ def adjust(family: Family, camera: Camera, obs: Observations, points: np.ndarray
     keeps a frame's offset from trading with its pose where one view cannot
     tell them apart, and the shared value is the offsets' centre). None:
     as ``start`` has it, else none.
+
+    ``points_sigma`` (mm): refine the phantom: every point's offset from its
+    CAD position is fitted, with a zero-mean Gaussian prior of that sigma
+    (which also holds the gauge: a rigid motion or scaling of the whole
+    phantom is the poses'). None: as ``start`` has it, else 0 (CAD as given).
+
+    ``centre_sigma`` (px): hold the principal point at the detector centre
+    with a prior of this sigma (0: free), the alternative a planar phantom
+    may not tell from the free one.
     """
     F = len(R0) if R0 is not None else len(start.R)
     shape = camera.shape
@@ -194,6 +212,12 @@ def adjust(family: Family, camera: Camera, obs: Observations, points: np.ndarray
             for j, n in enumerate(family.per_frame):
                 per[:, j] = start.per_frame[:, start.family.per_frame.index(n)] if n in start.family.per_frame \
                     else dist.coefficients[dist.names.index(n)]
+    if points_sigma is None:
+        points_sigma = start.points_sigma if start is not None else 0.0
+    P = len(points) if points_sigma else 0
+    poff = np.zeros((len(points), 3))
+    if P and start is not None and start.point_offsets is not None:
+        poff = start.point_offsets.copy()
     R0 = np.array(R0, float)
     t0 = np.array(t0, float)
     pts = points[obs.sph]
@@ -214,6 +238,12 @@ def adjust(family: Family, camera: Camera, obs: Observations, points: np.ndarray
     values += [dist.coefficients[dist.names.index(n)] for n in family.shared]
     scales += [0.1] * len(family.shared)
     units += ["px"] * len(family.shared)
+    i_pts = len(names)
+    for j in range(P):
+        names += [f"point{j}_{a}" for a in "xyz"]
+    values += list(poff[:P].ravel())
+    scales += [0.01] * 3 * P
+    units += ["mm"] * 3 * P
     i_pose = len(names)
     npd = 6 + len(family.per_frame)
     npf = npd + len(fi_idx)
@@ -241,6 +271,9 @@ def adjust(family: Family, camera: Camera, obs: Observations, points: np.ndarray
         Rk = rotvec_to_matrix(blocks[:, :3]) @ R0
         return cam, d, blocks, Rk
 
+    def obs_points(x):
+        return pts + x[i_pts:i_pose].reshape(P, 3)[obs.sph] if P else pts
+
     def offsets(blocks):
         o = np.zeros((F, 3))
         o[:, fi_idx] = blocks[:, npd:]
@@ -248,7 +281,7 @@ def adjust(family: Family, camera: Camera, obs: Observations, points: np.ndarray
 
     def model(x, need_jac=False, sparse=False):
         cam, d, blocks, Rk = unpack(x)
-        Rp = np.einsum("nij,nj->ni", Rk[slot], pts)
+        Rp = np.einsum("nij,nj->ni", Rk[slot], obs_points(x))
         X = Rp + blocks[slot, 3:6]
         own = offsets(blocks)[slot] if fi_idx else None
         # residual evaluations (most calls) need no derivatives
@@ -280,6 +313,10 @@ def adjust(family: Family, camera: Camera, obs: Observations, points: np.ndarray
             Js[:, :, 3:5] = Jc
         for j, ci in enumerate(shared_idx):
             Js[:, :, i_coef + j] = basis[:, :, ci]
+        if P:
+            JP = AJX @ Rk[slot]                                               # d m / d point (N, 2, 3)
+            for a in range(3):
+                Js[np.arange(N), :, i_pts + 3 * obs.sph + a] = JP[:, :, a]
         Jf = np.empty((N, 2, npf))
         Jf[:, :, :3] = AJX @ (-skew(Rp) @ so3_left_jacobian(blocks[:, :3])[slot])
         Jf[:, :, 3:6] = AJX
@@ -319,6 +356,12 @@ def adjust(family: Family, camera: Camera, obs: Observations, points: np.ndarray
     off_w = np.tile(1.0 / fi_sig, F) if fi_idx else np.zeros(0)
     prior_J = np.vstack([prior_J, np.zeros((len(off_cols), len(x)))])
     prior_J[np.arange(len(off_cols)) + len(prior_J) - len(off_cols), off_cols] = off_w
+    # the refined phantom's zero-mean prior: one row per point and axis
+    pt_cols = np.arange(i_pts, i_pose)
+    prior_J = np.vstack([prior_J, np.zeros((len(pt_cols), len(x)))])
+    pt_w = np.full(3 * P, 1.0 / (points_sigma or 1.0))
+    if P:
+        prior_J[np.arange(len(pt_cols)) + len(prior_J) - len(pt_cols), pt_cols] = pt_w
 
     # Priors weigh against the data at the data's real scatter: where detect's
     # sigma is too small (real images: the model leaves several times it), the
@@ -329,8 +372,14 @@ def adjust(family: Family, camera: Camera, obs: Observations, points: np.ndarray
 
     def prior_r(x):
         c = (x[3:5] - centre0) * prior_w if family.free_centre else np.zeros(0)
-        return ps * np.concatenate([c, x[off_cols] * off_w])
+        return ps * np.concatenate([c, x[off_cols] * off_w, x[pt_cols] * pt_w if P else np.zeros(0),
+                                    (x[1:3] - pp0) / centre_sigma if centre_sigma else np.zeros(0)])
 
+    pp0 = np.array(detector_centre(shape))
+    if centre_sigma:
+        pj = np.zeros((2, len(x)))
+        pj[0, 1] = pj[1, 2] = 1.0 / centre_sigma
+        prior_J = np.vstack([prior_J, pj])
     prior_sp = sp.csr_matrix(prior_J)
     inv_sig = np.repeat(1.0 / obs.sigma, 2)
 
@@ -350,7 +399,7 @@ def adjust(family: Family, camera: Camera, obs: Observations, points: np.ndarray
             ps = s
         else:
             cam, d, blocks, Rk = unpack(x)
-            X = np.einsum("nij,nj->ni", Rk[slot], pts) + blocks[slot, 3:6]
+            X = np.einsum("nij,nj->ni", Rk[slot], obs_points(x)) + blocks[slot, 3:6]
             new_bias = shadow_bias(cam.geometry(), X, radius, coarse=True) if radius else np.zeros((N, 2))
             # a pass that would move the bias by less than a thousandth of a pixel
             # would end where the last one did
@@ -369,7 +418,8 @@ def adjust(family: Family, camera: Camera, obs: Observations, points: np.ndarray
     res = markers_chi2(fit)
     scale = max(1.0, fit.reduced_chi2) if np.isfinite(fit.reduced_chi2) else 1.0
     return Bundle(family, cam, d, blocks[:, 6:npd].copy(), Rk, blocks[:, 3:6].copy(), res, fit, scale, names,
-                  slot.copy(), dict(frame_intrinsics), offsets(blocks) if fi_idx else None, ps)
+                  slot.copy(), dict(frame_intrinsics), offsets(blocks) if fi_idx else None, ps,
+                  x[i_pts:i_pose].reshape(P, 3).copy() if P else None, float(points_sigma))
 
 
 FAMILIES = (

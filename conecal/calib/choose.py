@@ -17,7 +17,7 @@ import numpy as np
 from .bundle import FAMILIES, Bundle, Family, Observations, adjust
 
 
-def _n_params(f: Family, n_frames: int) -> int:
+def n_params(f: Family, n_frames: int) -> int:
     return f.k + len(f.per_frame) * n_frames
 
 
@@ -33,9 +33,53 @@ def heldout_scores(family: Family, full: Bundle, obs: Observations, points, radi
             continue
         b = adjust(family, full.camera, train, points, radius, full.R, full.t, start=full, passes=1, max_nfev=30,
                    covariance=False)
-        pred = b.predict(points[obs.sph[test]], obs.slot[test], radius)
+        pred = b.predict(b.phantom(points)[obs.sph[test]], obs.slot[test], radius)
         r2[test] = np.sum((pred - obs.xy[test]) ** 2, 1) / sigma_eff[test] ** 2
     return r2
+
+
+def _folds(n: int, n_folds: int, seed: int) -> np.ndarray:
+    return np.random.default_rng(seed).integers(0, n_folds, n)
+
+
+def _noise(fits, n: int) -> np.ndarray:
+    """One noise scale (px per axis) for all candidates: the most flexible fit's residuals."""
+    flexible = min(fits, key=lambda b: float(np.mean(np.sum(b.residual_px ** 2, 1))))
+    return np.full(n, max(float(np.sqrt(np.mean(np.sum(flexible.residual_px ** 2, 1)) / 2)), 1e-3))
+
+
+def paired_heldout(a: Bundle, b: Bundle, obs: Observations, points, radius, n_folds: int = 5,
+                   seed: int = 0) -> dict:
+    """Two fits of the same markers compared on held-out markers (the folds
+    ``choose_family`` uses, one noise scale): ``gain`` is the held-out
+    chi-square ``a`` loses to ``b`` (> 0: b predicts better), with its
+    standard error, and each one's held-out RMS (px)."""
+    folds = _folds(len(obs), n_folds, seed)
+    sig = _noise((a, b), len(obs))
+    sa = heldout_scores(a.family, a, obs, points, radius, folds, sig)
+    sb = heldout_scores(b.family, b, obs, points, radius, folds, sig)
+    ok = np.isfinite(sa) & np.isfinite(sb)
+    d = sa[ok] - sb[ok]
+    rms = lambda s: float(np.sqrt(np.nanmean(s) / 2) * sig[0])  # noqa: E731
+    return {"gain": float(d.sum()), "se": float(np.sqrt(len(d)) * d.std()) if len(d) else 0.0,
+            "rms_a": rms(sa), "rms_b": rms(sb), "n": int(len(d))}
+
+
+def beats(p: dict) -> bool:
+    """``b`` beats ``a`` as a flexible family must: by more than max(3, two standard errors)."""
+    return p["n"] > 0 and p["gain"] > max(3.0, 2 * p["se"])
+
+
+def choose_refinement(plain: Bundle, refined: Bundle, obs: Observations, points, radius, n_folds: int = 5,
+                      seed: int = 0) -> tuple[bool, dict]:
+    """Whether the phantom refined (``refined``: each sphere's offset from its
+    CAD position fitted) predicts held-out markers better than the CAD as given
+    (``plain``). Returns the verdict and a row for the document."""
+    p = paired_heldout(plain, refined, obs, points, radius, n_folds, seed)
+    chosen = beats(p)
+    return chosen, {"prior_sigma_mm": refined.points_sigma, "heldout_rms_px_cad": p["rms_a"],
+                    "heldout_rms_px_refined": p["rms_b"], "gain_chi2": p["gain"], "gain_se": p["se"],
+                    "chosen": chosen}
 
 
 def choose_family(fits: dict, obs: Observations, points, radius, n_folds: int = 5, seed: int = 0,
@@ -43,12 +87,9 @@ def choose_family(fits: dict, obs: Observations, points, radius, n_folds: int = 
     """``fits``: family name -> its bundle on all of ``obs``. Returns the chosen
     family and one row per family (name, parameters, held-out score, chosen,
     why)."""
-    rng = np.random.default_rng(seed)
-    folds = rng.integers(0, n_folds, len(obs))
+    folds = _folds(len(obs), n_folds, seed)
     n_frames = len(next(iter(fits.values())).R)
-    # one noise scale for all families: the most flexible fit's residuals
-    flexible = min(fits.values(), key=lambda b: float(np.mean(np.sum(b.residual_px ** 2, 1))))
-    sig = np.full(len(obs), max(float(np.sqrt(np.mean(np.sum(flexible.residual_px ** 2, 1)) / 2)), 1e-3))
+    sig = _noise(fits.values(), len(obs))
     scores = {}
     for i, f in enumerate(families):
         if f.name not in fits:
@@ -60,8 +101,8 @@ def choose_family(fits: dict, obs: Observations, points, radius, n_folds: int = 
     fams = [f for f in families if f.name in ok]
     best = min(fams, key=lambda f: ok[f.name].sum())
     pick = best
-    for f in sorted(fams, key=lambda f: (_n_params(f, n_frames), ok[f.name].sum())):
-        if _n_params(f, n_frames) >= _n_params(best, n_frames):
+    for f in sorted(fams, key=lambda f: (n_params(f, n_frames), ok[f.name].sum())):
+        if n_params(f, n_frames) >= n_params(best, n_frames):
             break
         d = ok[f.name] - ok[best.name]
         behind, se = float(d.sum()), float(np.sqrt(len(d)) * d.std())
@@ -73,7 +114,7 @@ def choose_family(fits: dict, obs: Observations, points, radius, n_folds: int = 
         if f.name not in scores:
             continue
         s = scores[f.name]
-        row = {"family": f.name, "parameters": _n_params(f, n_frames),
+        row = {"family": f.name, "parameters": n_params(f, n_frames),
                "heldout_rms_px": float(np.sqrt(np.nanmean(s) / 2) * sig[0]) if np.isfinite(s).any() else None,
                "heldout_chi2": float(np.nansum(s)), "chosen": f is pick}
         if f is not pick and f.name in ok:

@@ -27,13 +27,14 @@ from .run import FreeOptions, FreeResult
 GAUGE = ("lab frame = the imaging system's: source at (0, 0, -sod) with the nominal sod, detector plane "
          "perpendicular to +z with u = +x, v = +y (no stage defines another frame); aspect and skew fixed by the "
          "stated pixel pitch; distortion without an affine part (a shift, scale or rotation of the image belongs "
-         "to the principal point, sdd and poses)")
+         "to the principal point, sdd and poses); a refined phantom (phantom_refinement) keeps its CAD "
+         "frame through the offsets' prior: a rigid motion or scaling of the whole phantom is the poses'")
 
 
 def _tied(res: FreeResult) -> list[Bundle]:
     out = []
     for row in res.choice:
-        if row.get("chosen") or "behind_chosen_chi2" not in row:
+        if row.get("chosen") or "behind_chosen_chi2" not in row or row.get("why"):
             continue
         if row["behind_chosen_chi2"] < max(3.0, 2 * row["behind_se"]):
             out.append(res.fits[row["family"]])
@@ -46,8 +47,10 @@ def _combine(stat: float, spreads: list, sigmas: list | None = None) -> tuple[fl
         return float(stat), 0.0
     sigmas = sigmas if sigmas is not None else [stat] * len(spreads)
     # a shift counts only when noise alone would rarely make it (beyond 2 sigma of
-    # the difference): max(0, d^2 - E d^2) on its own inflates sigma on average
-    excess = [d * d if d * d > 4 * max(sf * sf - stat * stat, 1e-12 * stat * stat) else 0.0
+    # the difference): max(0, d^2 - E d^2) on its own inflates sigma on average.
+    # Nested fits differ by noise of variance |s_f^2 - s_c^2|, whichever is the
+    # more flexible (a tied family, or the principal point held at the centre)
+    excess = [d * d if d * d > 4 * max(abs(sf * sf - stat * stat), 1e-12 * stat * stat) else 0.0
               for d, sf in zip(spreads, sigmas)]
     model = float(np.sqrt(np.mean(excess)))
     return float(np.hypot(stat, model)), model
@@ -110,8 +113,8 @@ def free_document(res: FreeResult, opt: FreeOptions, header: dict) -> dict:
                 out["set_aside"] = fr["set_aside"]
             seen = np.zeros(len(res.shape.points), bool)
             seen[np.asarray(p, int)] = True
-            hidden = hidden_behind(b.frame_camera(s).geometry(), res.shape.points @ R.T + t, res.shape.radius, seen,
-                                   res.shape.ids)
+            hidden = hidden_behind(b.frame_camera(s).geometry(), b.phantom(res.shape.points) @ R.T + t,
+                                   res.shape.radius, seen, res.shape.ids)
             if hidden:
                 out["hidden"] = hidden
             if b.family.per_frame and b.distortion is not None:
@@ -133,7 +136,7 @@ def free_document(res: FreeResult, opt: FreeOptions, header: dict) -> dict:
     rms = float(np.sqrt(np.mean(np.concatenate(ok_res)))) if ok_res else float("nan")
     geo = b.camera.geometry().to_dict()
     doc = {**header, "motion": "free", **geo, "axes": [], "intrinsics": intr, "distortion": dist,
-           "gauge": GAUGE, "distortion_choice": res.choice,
+           "gauge": GAUGE, "distortion_choice": res.choice, "phantom_refinement": _refinement(res),
            "phantom": {"planar": bool(res.shape.planar), "lattice": res.shape.lattice is not None,
                        "symmetries": len(res.shape.symmetries)},
            "units": {"t": "mm", "R": "rotation matrix, P_lab = R p_phantom + t", "rms_px": "px",
@@ -141,6 +144,7 @@ def free_document(res: FreeResult, opt: FreeOptions, header: dict) -> dict:
                      "sigma_translation_mm": "mm", "intrinsics": "sdd mm; c0, r0 px (principal point)"},
            "options": {"max_rms_px": opt.max_rms_px, "floor_factor": opt.floor_factor,
                        "outlier_factor": opt.outlier_factor, "distortion": opt.distortion, "folds": opt.folds,
+                       "phantom_sigma_mm": opt.phantom_sigma_mm,
                        "frame_intrinsics_sigma": dict(opt.frame_intrinsics)},
            "summary": {"frames": len(frames), "ok": reasons.get("ok", 0), "ambiguous": reasons.get("ambiguous", 0),
                        "rejected": reasons.get("rejected", 0),
@@ -163,3 +167,17 @@ def _adequacy(rms: float, chi2_red: float) -> str:
     return (f"not at the noise floor: the model leaves {rms:.3f} px RMS, {k:.1f}x the centres' stated sigma; "
             f"structure no distortion family holds remains (conecal diagnose locates it); sigma are scaled by "
             f"{k:.1f} but do not hold the bias that structure puts in the intrinsics")
+
+
+def _refinement(res) -> dict | None:
+    """The held-out test of refining the phantom and, when kept, each sphere's
+    offset (mm, phantom frame) from its CAD position with sigma."""
+    if res.refinement is None:
+        return None
+    out = dict(res.refinement)
+    b = res.bundle
+    if b.point_offsets is not None:
+        out["spheres"] = [{"id": int(i), "offset_mm": [float(v) for v in off],
+                           "sigma_mm": [b.sigma(f"point{j}_{a}") for a in "xyz"]}
+                          for j, (i, off) in enumerate(zip(res.shape.ids, b.point_offsets))]
+    return out

@@ -100,6 +100,9 @@ def describe_phantom(points, ids, plane_tol: float = 0.02, lattice_tol: float = 
         return shape
     ij = np.round(ij).astype(int)
     ij -= ij.min(0)
+    # the basis from every sphere (least squares), not from the median step: a
+    # measured grid's small errors average out, so its symmetries are found
+    B = np.linalg.lstsq(np.column_stack([ij, np.ones(len(ij))]), q, rcond=None)[0][:2].T
     return PhantomShape(P, shape.ids, True, origin, e1, e2, n, ij, B, _symmetries(ij, B), radius)
 
 
@@ -110,7 +113,7 @@ def _symmetries(ij: np.ndarray, B: np.ndarray) -> list:
     have = {tuple(v) for v in ij}
     out = []
     for M in LATTICE_MAPS:
-        if not np.allclose(M.T @ G @ M, G, rtol=1e-3, atol=1e-6 * np.abs(G).max()):
+        if not np.allclose(M.T @ G @ M, G, rtol=0, atol=3e-3 * np.abs(G).max()):
             continue
         m = ij @ M.T
         o = ij.min(0) - m.min(0)

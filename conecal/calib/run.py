@@ -18,7 +18,7 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -26,7 +26,7 @@ from ..errors import FitError
 from ..geometry import rotvec_to_matrix
 from .bundle import FAMILIES, Bundle, Observations, adjust, family_named
 from .camera import Camera
-from .choose import choose_family
+from .choose import choose_family, choose_refinement, n_params, paired_heldout
 from .phantom import describe_phantom
 from .candidate import assign, refine_pose
 from .search import SearchOptions, search_frame
@@ -40,7 +40,10 @@ class FreeOptions:
     (chosen on held-out markers) or a family name; folds: held-out groups;
     mirror_chi2: a mirror pose within this chi-square of the fit ties;
     frame_intrinsics: (name, prior sigma) pairs of intrinsics freed per
-    frame (sdd mm; c0, r0 px), for a C-arm that sags between views."""
+    frame (sdd mm; c0, r0 px), for a C-arm that sags between views;
+    phantom_sigma_mm: prior sigma of each sphere's offset from its CAD
+    position when the phantom is refined (kept only if held-out markers
+    say so), 0: never refined."""
 
     max_rms_px: float = 1.0
     floor_factor: float = 2.5
@@ -50,6 +53,7 @@ class FreeOptions:
     mirror_chi2: float = 25.0
     search: SearchOptions = SearchOptions()
     frame_intrinsics: tuple = ()
+    phantom_sigma_mm: float = 0.1
 
 
 @dataclass
@@ -61,6 +65,7 @@ class FreeResult:
     shape: object
     convention: str
     fits: dict            # family name -> bundle on the final frames
+    refinement: dict | None = None   # the held-out test of refining the phantom
 
 
 def _detections(frame: dict):
@@ -114,8 +119,25 @@ def calibrate_free(scan, markers: dict, geometry, opt: FreeOptions = FreeOptions
         else:
             chosen, choice = family_named(opt.distortion), [{"family": opt.distortion, "chosen": True,
                                                              "why": "named by --distortion"}]
+        start, refinement = fits[chosen.name], None
+        if opt.phantom_sigma_mm > 0:
+            # the spheres may not sit where the CAD file says (a drilled plate:
+            # a tenth of a mm); refined only if held-out markers are predicted better
+            refined = adjust(chosen, cam, obs, shape.points, radius, None, None, start=start,
+                             points_sigma=opt.phantom_sigma_mm)
+            use, refinement = choose_refinement(start, refined, obs, shape.points, radius, opt.folds)
+            start = refined if use else start
+            if use and opt.distortion == "auto":
+                # a phantom off its file leaks into the distortion: the families
+                # are chosen again with the spheres where the refit put them
+                moved = refined.phantom(shape.points)
+                fits = {f.name: adjust(f, cam, obs, moved, radius, None, None, start=fits[f.name], max_nfev=30)
+                        for f in fams}
+                chosen, choice = choose_family(fits, obs, moved, radius, opt.folds)
+                start = replace(fits[chosen.name], point_offsets=refined.point_offsets,
+                                points_sigma=refined.points_sigma)
         final = fits[chosen.name] = adjust(chosen, cam, obs, shape.points, radius, None, None,
-                                           start=fits[chosen.name], max_nfev=100)
+                                           start=start, max_nfev=100)
         if not _judge(final, usable, obs, opt):
             break
         usable = [fr for fr in usable if fr["status"] == "ok"]
@@ -124,8 +146,10 @@ def calibrate_free(scan, markers: dict, geometry, opt: FreeOptions = FreeOptions
     else:
         raise FitError("frames kept being rejected after 6 bundle adjustments; the model does not fit this scan")
     _mirrors(final, usable, obs, shape, radius, opt)
+    if opt.distortion == "auto":
+        _centred_alternative(final, fits, choice, obs, shape, radius, cam, opt)
     conv = sorted({fr["search"].convention for fr in frames if fr["search"].convention})
-    return FreeResult(final.camera, final, frames, choice, shape, "; ".join(conv), fits)
+    return FreeResult(final.camera, final, frames, choice, shape, "; ".join(conv), fits, refinement)
 
 
 def _fit_families(fams, cam, usable, dets, shape, radius, opt):
@@ -176,7 +200,7 @@ def _regather(b: Bundle, usable, dets, shape, radius, opt: FreeOptions):
     gate = max(0.5, opt.outlier_factor * pooled)
     for s, fr in enumerate(usable):
         X, _ = dets[fr["frame"]]
-        pts = shape.points
+        pts = b.phantom(shape.points)
         pred = b.predict(pts, np.full(len(pts), s), radius)
         p, d = assign(pred, X, gate)
         fr["pairs"] = (d, p)
@@ -223,7 +247,7 @@ def _mirrors(b: Bundle, usable, obs: Observations, shape, radius, opt: FreeOptio
             continue
         cam = b.frame_camera(s)
         sel = obs.slot == s
-        P = shape.points[obs.sph[sel]]
+        P = b.phantom(shape.points)[obs.sph[sel]]
         dist = b.frame_distortion(s)
         xy = obs.xy[sel] if dist is None else dist.undistort(obs.xy[sel])
         R, t = b.R[s], b.t[s]
@@ -265,3 +289,31 @@ def _rotation_sigma(b: Bundle, slot: int, axis: np.ndarray) -> float:
     idx = [free.index(f"frame{slot}_{n}") for n in ("rx", "ry", "rz")]
     C = b.fit.covariance[np.ix_(idx, idx)] * b.covariance_scale
     return float(np.sqrt(max(axis @ C @ axis, 0.0)))
+
+
+CENTRED = "the chosen, principal point held at the detector centre"
+
+
+def _centred_alternative(final: Bundle, fits: dict, choice: list, obs: Observations, shape, radius, cam,
+                         opt: FreeOptions) -> None:
+    """A planar phantom seen from few directions, with a distortion about a free
+    centre, may not tell the principal point from the detector centre: the
+    chosen model refitted with it held there is scored on the same held-out
+    markers and listed in the choice; where held-out markers cannot tell it
+    from the free fit, its spread is part of the intrinsics' sigma (as a tied
+    family's is)."""
+    centred = adjust(final.family, cam, obs, shape.points, radius, None, None, start=final, centre_sigma=0.5)
+    p = paired_heldout(centred, final, obs, shape.points, radius, opt.folds)
+    fits[CENTRED] = centred
+    row = {"family": CENTRED, "parameters": n_params(final.family, len(final.R)), "heldout_rms_px": p["rms_a"],
+           "chosen": False, "behind_chosen_chi2": p["gain"], "behind_se": p["se"]}
+    # Held-out markers hardly see the principal point (the poses absorb it); the
+    # fit's own chi-square does, where the markers are at their noise. There a
+    # centred principal point it rejects (chi-square(2) beyond 6) is no
+    # alternative; where structure remains (reduced chi-square above 2) that
+    # test is not to be trusted, and held-out markers decide alone.
+    delta = (centred.fit.chi2 - final.fit.chi2) / final.covariance_scale
+    row["in_sample_delta_chi2"] = float(delta)
+    if final.fit.reduced_chi2 <= 2.0 and delta > 6.0:
+        row["why"] = "rejected by the fit's own chi-square: at the noise floor the principal point is measured"
+    choice.append(row)

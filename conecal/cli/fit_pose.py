@@ -41,7 +41,12 @@ POSES_FORMAT = "conecal-poses/1"
 @click.option("--use-flagged", is_flag=True, help="Also use truncated/overlapping/cluttered markers.")
 @click.option("--distortion", default="auto", show_default=True,
               help="motion: free only: detector distortion family, 'auto' (chosen on held-out markers) or one of "
-                   "none, radial, radial+S, radial+S+tangential, 'radial+S per frame', polynomial3.")
+                   "none, radial, radial+S, radial+S+tangential, 'radial+S per frame', 'radial+S+tangential, S per "
+                   "frame', polynomial3.")
+@click.option("--phantom-sigma", type=click.FloatRange(min=0), default=None,
+              help="motion: free only: how far (mm, 1 sigma) each sphere may sit from its phantom.csv position; "
+                   "the phantom is refined with this prior and kept so only if held-out markers are predicted "
+                   "better; 0: never refined.  [default: 0.1]")
 @click.option("--frame-intrinsics", default=None, metavar="NAME[=SIGMA],...",
               help="motion: free only: free these intrinsics per frame, for a C-arm that sags between views "
                    "(sdd, c0, r0; SIGMA: the prior spread of a frame's value about the shared one, sdd mm "
@@ -55,7 +60,7 @@ POSES_FORMAT = "conecal-poses/1"
 @click.option("--part", "part", default=None, metavar="I/N",
               help="Robot scans: only the I-th of N nearly equal parts of the log, as with --frames.")
 def command(scan, markers, geometry, output, max_rms, prior_mm, prior_deg, initial, use_flagged, distortion,
-            frame_intrinsics, refine_geometry, frame_range, part):
+            phantom_sigma, frame_intrinsics, refine_geometry, frame_range, part):
     """Estimate the holder's pose (P_lab = R p_holder + t) in every frame of SCAN.
 
     A motion: free scan (a C-arm or radiography set-up imaging a known
@@ -90,17 +95,18 @@ def command(scan, markers, geometry, output, max_rms, prior_mm, prior_deg, initi
             from ..errors import InputError
             raise InputError("--frames/--part: robot scans only (a free-pose calibration is one bundle adjustment "
                              "of every frame)")
-        return run_free(s, scan, mdoc, markers, geometry, output, max_rms, distortion, frame_intrinsics)
+        return run_free(s, scan, mdoc, markers, geometry, output, max_rms, distortion, frame_intrinsics,
+                        phantom_sigma)
     subset = selected_frames(s, frame_range, part)
     if subset is not None and (initial == "previous" or refine_geometry):
         from ..errors import InputError
         raise InputError("--frames/--part: not with --initial previous or --refine-geometry, which need every frame")
     if max_rms is None:
         max_rms = 0.5
-    if distortion != "auto" or frame_intrinsics:
+    if distortion != "auto" or frame_intrinsics or phantom_sigma is not None:
         from ..errors import InputError
-        raise InputError(f"--{'distortion' if distortion != 'auto' else 'frame-intrinsics'}: only for motion: free "
-                         "scans")
+        which = "distortion" if distortion != "auto" else "frame-intrinsics" if frame_intrinsics else "phantom-sigma"
+        raise InputError(f"--{which}: only for motion: free scans")
     gdoc = read_json(geometry, "conecal-geometry") if geometry else None
     g = ConeGeometry.from_dict(gdoc) if gdoc else s.nominal_geometry()
     opt = PoseOptions(max_rms_px=max_rms, prior_mm=prior_mm, prior_deg=prior_deg)

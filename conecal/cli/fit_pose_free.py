@@ -43,7 +43,8 @@ def parse_frame_intrinsics(text: str | None) -> tuple:
     return tuple(out.items())
 
 
-def run_free(s, scan, mdoc, markers, geometry, output, max_rms, distortion, frame_intrinsics=None) -> None:
+def run_free(s, scan, mdoc, markers, geometry, output, max_rms, distortion, frame_intrinsics=None,
+             phantom_sigma=None) -> None:
     names = [f.name for f in FAMILIES]
     fi = parse_frame_intrinsics(frame_intrinsics)
     if distortion != "auto" and distortion not in names:
@@ -53,7 +54,8 @@ def run_free(s, scan, mdoc, markers, geometry, output, max_rms, distortion, fram
         raise InputError(f"{geometry}: a free-pose calibration starts from a geometry in its own frame "
                          "(source on the z axis, u = +x, v = +y); give none to start from the nominal one")
     opt = FreeOptions(max_rms_px=max_rms if max_rms is not None else FreeOptions.max_rms_px, distortion=distortion,
-                      frame_intrinsics=fi)
+                      frame_intrinsics=fi,
+                      phantom_sigma_mm=phantom_sigma if phantom_sigma is not None else FreeOptions.phantom_sigma_mm)
     with progress_bar("fit-pose (pose search)") as prog:
         res = calibrate_free(s, mdoc, g, opt, progress=prog, say=info)
     header = {"format": POSES_FORMAT, "software": f"conecal {__version__}", "scan": str(scan),
@@ -69,6 +71,11 @@ def run_free(s, scan, mdoc, markers, geometry, output, max_rms, distortion, fram
          f"rejected; reprojection RMS {sm['rms_px']:.4f} px")
     for reason, n in Counter(sm["reasons"]).most_common():
         info(f"  {n} frame(s): {reason}")
+    ref = doc["phantom_refinement"]
+    if ref and ref["chosen"]:
+        big = max(ref["spheres"], key=lambda r: float(np.linalg.norm(r["offset_mm"])))
+        info(f"phantom refined: held-out {ref['heldout_rms_px_cad']:.3f} -> {ref['heldout_rms_px_refined']:.3f} px; "
+             f"spheres off phantom.csv by up to {np.linalg.norm(big['offset_mm']):.3f} mm (id {big['id']})")
     if not sm["adequacy"].startswith("at the noise floor"):
         info(sm["adequacy"])
     d = doc["distortion"]

@@ -66,6 +66,9 @@ def _prediction(doc, frame, P, radius):
 
 def diagnose_free(doc: dict, scan, markers: dict, alpha: float = 0.01) -> dict:
     pos = dict(zip(scan.phantom.ids.tolist(), scan.phantom.positions))
+    # a result that refined the phantom is judged with the spheres where it put them
+    for sph in (doc.get("phantom_refinement") or {}).get("spheres", []):
+        pos[sph["id"]] = pos[sph["id"]] + np.asarray(sph["offset_mm"])
     radius = scan.config.markers.diameter / 2
     by_frame = {int(f["frame"]): f["markers"] for f in markers["frames"]}
     xy, sig, res, fid, sid, Rs = [], [], [], [], [], []

@@ -107,6 +107,21 @@ def free_html(doc) -> tuple[list[str], list]:
     parts.append("<p>Distortion families on held-out markers (behind: paired held-out χ² difference to the chosen):"
                  f"</p><table><tr><th>family</th><th>parameters</th><th>held-out RMS px</th><th>behind</th><th></th>"
                  f"</tr>{ch}</table>")
+    ref = doc.get("phantom_refinement")
+    if ref:
+        verdict = "kept" if ref["chosen"] else "not kept"
+        parts.append(f"<p>Phantom refined (each sphere's offset from phantom.csv, prior σ {ref['prior_sigma_mm']:g} mm): "
+                     f"{verdict}; held-out RMS {ref['heldout_rms_px_cad']:.3f} px with the CAD positions, "
+                     f"{ref['heldout_rms_px_refined']:.3f} px refined.</p>")
+        if ref.get("spheres"):
+            srow = "".join(f"<tr><td>{r['id']}</td><td class=num>{', '.join(f'{v:+.3f}' for v in r['offset_mm'])}</td>"
+                           f"<td class=num>{', '.join(f'{v:.3f}' for v in r['sigma_mm'])}</td></tr>"
+                           for r in ref["spheres"])
+            parts.append("<details><summary>Each sphere's offset from phantom.csv (mm, phantom frame)</summary>"
+                         "<table><tr><th>id</th><th>offset x, y, z</th><th>± 1σ</th></tr>" + srow + "</table></details>")
+    sm = doc.get("summary", {})
+    if sm.get("adequacy"):
+        parts.append(f"<p>Adequacy: {html.escape(sm['adequacy'])}.</p>")
     parts.append(f"<p>Gauge: {html.escape(doc.get('gauge', ''))}.</p>")
     fr_rows = []
     for f in doc.get("frames", []):
