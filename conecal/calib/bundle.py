@@ -343,25 +343,29 @@ def adjust(family: Family, camera: Camera, obs: Observations, points: np.ndarray
     x = np.array(values, float)
     if probe:
         return x, model
-    # A free distortion centre is blind while the distortion is nil: a weak
-    # prior (half the normalising radius about the detector centre) keeps it
-    # put there, and is negligible against any distortion the data show.
-    prior_J = np.zeros((2 if family.free_centre else 0, len(x)))
+    # Gaussian priors, one row each: column, weight (1/sigma), centre
+    centre = np.array(detector_centre(shape))
+    pcol, pw, p0 = [], [], []
+
+    def prior(cols, weights, at):
+        pcol.append(np.asarray(cols, int))
+        pw.append(np.broadcast_to(np.asarray(weights, float), (len(pcol[-1]),)))
+        p0.append(np.broadcast_to(np.asarray(at, float), (len(pcol[-1]),)))
+
     if family.free_centre:
-        centre0 = np.array(detector_centre(shape))
-        prior_w = 1.0 / (0.5 * dist.radius)
-        prior_J[0, 3], prior_J[1, 4] = prior_w, prior_w
+        # A free distortion centre is blind while the distortion is nil: a weak
+        # prior (half the normalising radius about the detector centre) keeps it
+        # put there, and is negligible against any distortion the data show.
+        prior([3, 4], 1.0 / (0.5 * dist.radius), centre)
     # the per-frame intrinsics' zero-mean prior: one row per frame and name
-    off_cols = (i_pose + np.arange(F)[:, None] * npf + npd + np.arange(len(fi_idx))[None]).ravel()
-    off_w = np.tile(1.0 / fi_sig, F) if fi_idx else np.zeros(0)
-    prior_J = np.vstack([prior_J, np.zeros((len(off_cols), len(x)))])
-    prior_J[np.arange(len(off_cols)) + len(prior_J) - len(off_cols), off_cols] = off_w
+    prior((i_pose + np.arange(F)[:, None] * npf + npd + np.arange(len(fi_idx))[None]).ravel(),
+          np.tile(1.0 / fi_sig, F) if fi_idx else [], 0.0)
     # the refined phantom's zero-mean prior: one row per point and axis
-    pt_cols = np.arange(i_pts, i_pose)
-    prior_J = np.vstack([prior_J, np.zeros((len(pt_cols), len(x)))])
-    pt_w = np.full(3 * P, 1.0 / (points_sigma or 1.0))
-    if P:
-        prior_J[np.arange(len(pt_cols)) + len(prior_J) - len(pt_cols), pt_cols] = pt_w
+    prior(np.arange(i_pts, i_pose), 1.0 / points_sigma if P else [], 0.0)
+    if centre_sigma:
+        prior([1, 2], 1.0 / centre_sigma, centre)
+    pcol, pw, p0 = np.concatenate(pcol), np.concatenate(pw), np.concatenate(p0)
+    prior_sp = sp.csr_matrix((pw, (np.arange(len(pcol)), pcol)), shape=(len(pcol), len(x)))
 
     # Priors weigh against the data at the data's real scatter: where detect's
     # sigma is too small (real images: the model leaves several times it), the
@@ -371,16 +375,8 @@ def adjust(family: Family, camera: Camera, obs: Observations, points: np.ndarray
     ps = start.prior_scale if start is not None else 1.0
 
     def prior_r(x):
-        c = (x[3:5] - centre0) * prior_w if family.free_centre else np.zeros(0)
-        return ps * np.concatenate([c, x[off_cols] * off_w, x[pt_cols] * pt_w if P else np.zeros(0),
-                                    (x[1:3] - pp0) / centre_sigma if centre_sigma else np.zeros(0)])
+        return ps * pw * (x[pcol] - p0)
 
-    pp0 = np.array(detector_centre(shape))
-    if centre_sigma:
-        pj = np.zeros((2, len(x)))
-        pj[0, 1] = pj[1, 2] = 1.0 / centre_sigma
-        prior_J = np.vstack([prior_J, pj])
-    prior_sp = sp.csr_matrix(prior_J)
     inv_sig = np.repeat(1.0 / obs.sigma, 2)
 
     def markers_chi2(fit):
@@ -394,7 +390,7 @@ def adjust(family: Family, camera: Camera, obs: Observations, points: np.ndarray
         if k_pass == passes:
             # the prior's factor, once, from the markers' reduced chi-square
             s = float(np.sqrt(max(1.0, fit.reduced_chi2))) if np.isfinite(fit.reduced_chi2) else 1.0
-            if not (covariance and prior_J.shape[0] and abs(s / ps - 1) > 0.2):
+            if not (covariance and len(pcol) and abs(s / ps - 1) > 0.2):
                 break
             ps = s
         else:
