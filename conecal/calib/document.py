@@ -78,7 +78,7 @@ def free_document(res: FreeResult, opt: FreeOptions, header: dict) -> dict:
         c, r = np.mgrid[0:b.camera.shape[0]:16, 0:b.camera.shape[1]:16]
         d = b.distortion.displacement(np.stack([r, c], -1).astype(float))
         dist["max_displacement_px"] = float(np.hypot(d[..., 0], d[..., 1]).max())
-    none = res.fits.get("none")
+    none = res.pinhole or res.fits.get("none")
     frames = []
     for fr in res.frames:
         s = fr.get("slot")

@@ -66,6 +66,7 @@ class FreeResult:
     convention: str
     fits: dict            # family name -> bundle on the final frames
     refinement: dict | None = None   # the held-out test of refining the phantom
+    pinhole: Bundle | None = None    # no distortion, the phantom as its file says (rms_px_pinhole)
 
 
 def _detections(frame: dict):
@@ -119,7 +120,7 @@ def calibrate_free(scan, markers: dict, geometry, opt: FreeOptions = FreeOptions
         else:
             chosen, choice = family_named(opt.distortion), [{"family": opt.distortion, "chosen": True,
                                                              "why": "named by --distortion"}]
-        start, refinement = fits[chosen.name], None
+        start, refinement, pinhole = fits[chosen.name], None, fits["none"]
         if opt.phantom_sigma_mm > 0:
             # the spheres may not sit where the CAD file says (a drilled plate:
             # a tenth of a mm); refined only if held-out markers are predicted better
@@ -149,7 +150,7 @@ def calibrate_free(scan, markers: dict, geometry, opt: FreeOptions = FreeOptions
     if opt.distortion == "auto":
         _centred_alternative(final, fits, choice, obs, shape, radius, cam, opt)
     conv = sorted({fr["search"].convention for fr in frames if fr["search"].convention})
-    return FreeResult(final.camera, final, frames, choice, shape, "; ".join(conv), fits, refinement)
+    return FreeResult(final.camera, final, frames, choice, shape, "; ".join(conv), fits, refinement, pinhole)
 
 
 def _fit_families(fams, cam, usable, dets, shape, radius, opt):
