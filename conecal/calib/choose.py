@@ -62,7 +62,7 @@ def paired_heldout(a: Bundle, b: Bundle, obs: Observations, points, radius, n_fo
     d = sa[ok] - sb[ok]
     rms = lambda s: float(np.sqrt(np.nanmean(s) / 2) * sig[0])  # noqa: E731
     return {"gain": float(d.sum()), "se": float(np.sqrt(len(d)) * d.std()) if len(d) else 0.0,
-            "rms_a": rms(sa), "rms_b": rms(sb), "n": int(len(d))}
+            "rms_a": rms(sa), "rms_b": rms(sb), "chi2_b": float(sb[ok].sum()), "n": int(len(d))}
 
 
 def beats(p: dict) -> bool:

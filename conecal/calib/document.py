@@ -36,7 +36,7 @@ def _tied(res: FreeResult) -> list[Bundle]:
     for row in res.choice:
         if row.get("chosen") or "behind_chosen_chi2" not in row or row.get("why"):
             continue
-        if row["behind_chosen_chi2"] < max(3.0, 2 * row["behind_se"]):
+        if row.get("tied", row["behind_chosen_chi2"] < max(3.0, 2 * row["behind_se"])):
             out.append(res.fits[row["family"]])
     return out
 

@@ -293,6 +293,7 @@ def _rotation_sigma(b: Bundle, slot: int, axis: np.ndarray) -> float:
 
 
 CENTRED = "the chosen, principal point held at the detector centre"
+CENTRED_MARGIN = 0.02
 
 
 def _centred_alternative(final: Bundle, fits: dict, choice: list, obs: Observations, shape, radius, cam,
@@ -317,4 +318,8 @@ def _centred_alternative(final: Bundle, fits: dict, choice: list, obs: Observati
     row["in_sample_delta_chi2"] = float(delta)
     if final.fit.reduced_chi2 <= 2.0 and delta > 6.0:
         row["why"] = "rejected by the fit's own chi-square: at the noise floor the principal point is measured"
+    else:
+        # tied also when it is behind by less than 2 % of the held-out chi-square:
+        # a difference that small is a matter of the folds, not of the recording
+        row["tied"] = bool(p["gain"] < max(3.0, 2 * p["se"], CENTRED_MARGIN * p["chi2_b"]))
     choice.append(row)
