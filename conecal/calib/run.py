@@ -120,23 +120,9 @@ def calibrate_free(scan, markers: dict, geometry, opt: FreeOptions = FreeOptions
         else:
             chosen, choice = family_named(opt.distortion), [{"family": opt.distortion, "chosen": True,
                                                              "why": "named by --distortion"}]
-        start, refinement, pinhole = fits[chosen.name], None, fits["none"]
-        if opt.phantom_sigma_mm > 0:
-            # the spheres may not sit where the CAD file says (a drilled plate:
-            # a tenth of a mm); refined only if held-out markers are predicted better
-            refined = adjust(chosen, cam, obs, shape.points, radius, None, None, start=start,
-                             points_sigma=opt.phantom_sigma_mm)
-            use, refinement = choose_refinement(start, refined, obs, shape.points, radius, opt.folds)
-            start = refined if use else start
-            if use and opt.distortion == "auto":
-                # a phantom off its file leaks into the distortion: the families
-                # are chosen again with the spheres where the refit put them
-                moved = refined.phantom(shape.points)
-                fits = {f.name: adjust(f, cam, obs, moved, radius, None, None, start=fits[f.name], max_nfev=30)
-                        for f in fams}
-                chosen, choice = choose_family(fits, obs, moved, radius, opt.folds)
-                start = replace(fits[chosen.name], point_offsets=refined.point_offsets,
-                                points_sigma=refined.points_sigma)
+        pinhole = fits["none"]
+        chosen, choice, fits, start, refinement = _refine_phantom(chosen, choice, fits, fams, cam, obs, shape,
+                                                                  radius, opt)
         final = fits[chosen.name] = adjust(chosen, cam, obs, shape.points, radius, None, None,
                                            start=start, max_nfev=100)
         if not _judge(final, usable, obs, opt):
@@ -151,6 +137,29 @@ def calibrate_free(scan, markers: dict, geometry, opt: FreeOptions = FreeOptions
         _centred_alternative(final, fits, choice, obs, shape, radius, cam, opt)
     conv = sorted({fr["search"].convention for fr in frames if fr["search"].convention})
     return FreeResult(final.camera, final, frames, choice, shape, "; ".join(conv), fits, refinement, pinhole)
+
+
+def _refine_phantom(chosen, choice, fits, fams, cam, obs: Observations, shape, radius, opt: FreeOptions):
+    """The spheres may not sit where the CAD file says (a drilled plate: a tenth
+    of a mm): the chosen family refitted with every sphere's offset free, kept
+    only if held-out markers are predicted better. A phantom off its file leaks
+    into the distortion, so when kept the families are chosen again with the
+    spheres where the refit put them. Returns (chosen, choice, fits, the bundle
+    to start the final fit from, the test's row or None)."""
+    start = fits[chosen.name]
+    if opt.phantom_sigma_mm <= 0:
+        return chosen, choice, fits, start, None
+    refined = adjust(chosen, cam, obs, shape.points, radius, None, None, start=start,
+                     points_sigma=opt.phantom_sigma_mm)
+    use, refinement = choose_refinement(start, refined, obs, shape.points, radius, opt.folds)
+    if not use:
+        return chosen, choice, fits, start, refinement
+    if opt.distortion == "auto":
+        moved = refined.phantom(shape.points)
+        fits = {f.name: adjust(f, cam, obs, moved, radius, None, None, start=fits[f.name], max_nfev=30) for f in fams}
+        chosen, choice = choose_family(fits, obs, moved, radius, opt.folds)
+        refined = replace(fits[chosen.name], point_offsets=refined.point_offsets, points_sigma=refined.points_sigma)
+    return chosen, choice, fits, refined, refinement
 
 
 def _fit_families(fams, cam, usable, dets, shape, radius, opt):
