@@ -50,7 +50,8 @@ def write_scan(images: Path, scan: Path) -> int:
         raise SystemExit(f"{images}: no .jpg frames")
     stack = np.stack([cv2.imread(str(f), cv2.IMREAD_GRAYSCALE).astype(np.float32) / 255.0 for f in files])
     scan.mkdir(parents=True)
-    tifffile.imwrite(scan / "projections.tif", stack)
+    # one page per frame even for a 3- or 4-frame stack (else read as colour samples)
+    tifffile.imwrite(scan / "projections.tif", stack, photometric="minisblack")
     (scan / "log.csv").write_text("frame,time\n" + "".join(f"{k},{k}.0\n" for k in range(len(files))))
     rows = [f"{i},{(i % 5 - 2) * PITCH_MM},{(i // 5 - 2) * PITCH_MM},0" for i in range(25)]
     (scan / "phantom.csv").write_text("id,x,y,z\n" + "\n".join(rows) + "\n")
