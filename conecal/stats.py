@@ -23,6 +23,18 @@ def difference_sigma(d, axis=None, centre: bool = True):
     return mad_sigma(d, axis=axis, centre=centre) / np.sqrt(2.0)
 
 
+def paired_behind(r2_a: np.ndarray, r2_b: np.ndarray) -> tuple[float, float]:
+    """Paired held-out chi^2 by which ``a`` trails ``b`` (per-observation held-out
+    squared residuals of each) and its standard error."""
+    d = np.asarray(r2_a) - np.asarray(r2_b)
+    return float(d.sum()), (float(np.sqrt(len(d) * d.var())) if len(d) > 1 else 0.0)
+
+
+def not_worse(behind: float, se: float) -> bool:
+    """Held-out data cannot tell it is worse: within two standard errors, and 3."""
+    return behind < max(3.0, 2 * se)
+
+
 def holm(p) -> np.ndarray:
     """Holm's step-down adjustment of p-values (family-wise error over all of them)."""
     p = np.asarray(p, float)

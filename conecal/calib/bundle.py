@@ -137,17 +137,20 @@ class Bundle:
         i = self.fit.names.index(name)
         return float(self.fit.sigma[i] * np.sqrt(self.covariance_scale))
 
+    def covariance_of(self, names: list) -> np.ndarray:
+        """The stated covariance (scaled by the reduced chi-square) of the free
+        parameters ``names``."""
+        free = [n for n, f in zip(self.fit.names, self.fit.free) if f]
+        idx = [free.index(n) for n in names]
+        return self.fit.covariance[np.ix_(idx, idx)] * self.covariance_scale
+
     def frame_intrinsic(self, slot: int, name: str) -> tuple[float, float]:
         """Frame ``slot``'s own value of intrinsic ``name`` (shared + offset) and
         its sigma (with the covariance of the two)."""
         i = INTRINSICS.index(name)
         value = float(self.camera.intrinsics()[i] + (self.offsets[slot, i] if self.offsets is not None else 0.0))
-        names = [n for n, f in zip(self.fit.names, self.fit.free) if f]
-        idx = [names.index(name)]
-        if name in self.frame_intrinsics:
-            idx.append(names.index(f"frame{slot}_{name}_offset"))
-        C = self.fit.covariance[np.ix_(idx, idx)]
-        return value, float(np.sqrt(max(C.sum(), 0.0) * self.covariance_scale))
+        names = [name] + ([f"frame{slot}_{name}_offset"] if name in self.frame_intrinsics else [])
+        return value, float(np.sqrt(max(self.covariance_of(names).sum(), 0.0)))
 
 
 def _distort(b: Bundle, q, slot):

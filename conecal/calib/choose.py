@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from ..stats import not_worse, paired_behind
 from .bundle import FAMILIES, Bundle, Family, Observations, adjust
 
 
@@ -59,15 +60,15 @@ def paired_heldout(a: Bundle, b: Bundle, obs: Observations, points, radius, n_fo
     sa = heldout_scores(a.family, a, obs, points, radius, folds, sig)
     sb = heldout_scores(b.family, b, obs, points, radius, folds, sig)
     ok = np.isfinite(sa) & np.isfinite(sb)
-    d = sa[ok] - sb[ok]
+    gain, se = paired_behind(sa[ok], sb[ok])
     rms = lambda s: float(np.sqrt(np.nanmean(s) / 2) * sig[0])  # noqa: E731
-    return {"gain": float(d.sum()), "se": float(np.sqrt(len(d)) * d.std()) if len(d) else 0.0,
-            "rms_a": rms(sa), "rms_b": rms(sb), "chi2_b": float(sb[ok].sum()), "n": int(len(d))}
+    return {"gain": gain, "se": se, "rms_a": rms(sa), "rms_b": rms(sb), "chi2_b": float(sb[ok].sum()),
+            "n": int(ok.sum())}
 
 
 def beats(p: dict) -> bool:
-    """``b`` beats ``a`` as a flexible family must: by more than max(3, two standard errors)."""
-    return p["n"] > 0 and p["gain"] > max(3.0, 2 * p["se"])
+    """``b`` beats ``a`` as a flexible family must: held-out markers can tell ``a`` is worse."""
+    return p["n"] > 0 and not not_worse(p["gain"], p["se"])
 
 
 def choose_refinement(plain: Bundle, refined: Bundle, obs: Observations, points, radius, n_folds: int = 5,
@@ -104,9 +105,7 @@ def choose_family(fits: dict, obs: Observations, points, radius, n_folds: int = 
     for f in sorted(fams, key=lambda f: (n_params(f, n_frames), ok[f.name].sum())):
         if n_params(f, n_frames) >= n_params(best, n_frames):
             break
-        d = ok[f.name] - ok[best.name]
-        behind, se = float(d.sum()), float(np.sqrt(len(d)) * d.std())
-        if behind < max(3.0, 2 * se):
+        if not_worse(*paired_behind(ok[f.name], ok[best.name])):
             pick = f
             break
     rows = []
@@ -118,9 +117,7 @@ def choose_family(fits: dict, obs: Observations, points, radius, n_folds: int = 
                "heldout_rms_px": float(np.sqrt(np.nanmean(s) / 2) * sig[0]) if np.isfinite(s).any() else None,
                "heldout_chi2": float(np.nansum(s)), "chosen": f is pick}
         if f is not pick and f.name in ok:
-            d = ok[f.name] - ok[pick.name]
-            row["behind_chosen_chi2"] = float(d.sum())
-            row["behind_se"] = float(np.sqrt(len(d)) * d.std())
+            row["behind_chosen_chi2"], row["behind_se"] = paired_behind(ok[f.name], ok[pick.name])
         elif f.name not in ok:
             row["why"] = "a frame lost all its markers in a fold: not scored"
         rows.append(row)

@@ -20,6 +20,7 @@ import numpy as np
 
 from ..geometry import matrix_to_rotvec
 from ..geometry.sphere import hidden_behind
+from ..stats import not_worse
 from .bundle import Bundle
 from .camera import INTRINSIC_UNITS, INTRINSICS
 from .run import FreeOptions, FreeResult
@@ -36,7 +37,7 @@ def _tied(res: FreeResult) -> list[Bundle]:
     for row in res.choice:
         if row.get("chosen") or "behind_chosen_chi2" not in row or row.get("why"):
             continue
-        if row.get("tied", row["behind_chosen_chi2"] < max(3.0, 2 * row["behind_se"])):
+        if row.get("tied", not_worse(row["behind_chosen_chi2"], row["behind_se"])):
             out.append(res.fits[row["family"]])
     return out
 

@@ -24,6 +24,7 @@ import numpy as np
 
 from ..errors import FitError
 from ..geometry import rotvec_to_matrix
+from ..stats import not_worse
 from .bundle import FAMILIES, Bundle, Observations, adjust, family_named
 from .camera import Camera
 from .choose import choose_family, choose_refinement, n_params, paired_heldout
@@ -295,9 +296,7 @@ def _mirrors(b: Bundle, usable, obs: Observations, shape, radius, opt: FreeOptio
 
 def _rotation_sigma(b: Bundle, slot: int, axis: np.ndarray) -> float:
     """Sigma (rad) of frame ``slot``'s rotation about the lab ``axis`` (unit)."""
-    free = [n for n, f in zip(b.fit.names, b.fit.free) if f]
-    idx = [free.index(f"frame{slot}_{n}") for n in ("rx", "ry", "rz")]
-    C = b.fit.covariance[np.ix_(idx, idx)] * b.covariance_scale
+    C = b.covariance_of([f"frame{slot}_{n}" for n in ("rx", "ry", "rz")])
     return float(np.sqrt(max(axis @ C @ axis, 0.0)))
 
 
@@ -330,5 +329,5 @@ def _centred_alternative(final: Bundle, fits: dict, choice: list, obs: Observati
     else:
         # tied also when it is behind by less than 2 % of the held-out chi-square:
         # a difference that small is a matter of the folds, not of the recording
-        row["tied"] = bool(p["gain"] < max(3.0, 2 * p["se"], CENTRED_MARGIN * p["chi2_b"]))
+        row["tied"] = bool(not_worse(p["gain"], p["se"]) or p["gain"] < CENTRED_MARGIN * p["chi2_b"])
     choice.append(row)

@@ -40,7 +40,7 @@ import numpy as np
 from scipy.stats import chi2 as chi2_dist
 from scipy.stats import f as f_dist
 
-from ..stats import holm
+from ..stats import holm, not_worse, paired_behind
 
 CURVES = ("gain", "scatter", "edge", "ghost")
 UNITS = {"gain": "fraction of the modelled attenuation", "scatter": "fraction of the background intensity",
@@ -334,7 +334,6 @@ def field_degree(vals: dict) -> tuple[int, dict]:
         per[d] = r2[ok]
     best = min(per, key=lambda d: per[d].sum())
     for d in sorted(per):
-        diff = per[d] - per[best]
-        if diff.sum() <= max(3.0, 2 * np.sqrt(len(diff) * diff.var())):
+        if not_worse(*paired_behind(per[d], per[best])):
             return d, {k: float(v.sum()) for k, v in per.items()}
     return best, {k: float(v.sum()) for k, v in per.items()}

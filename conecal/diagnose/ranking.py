@@ -5,19 +5,7 @@ from the best."""
 
 from __future__ import annotations
 
-import numpy as np
-
-
-def paired_behind(r2_a: np.ndarray, r2_b: np.ndarray) -> tuple[float, float]:
-    """Paired held-out chi^2 by which ``a`` trails ``b`` (per-observation held-out
-    squared residuals of each) and its standard error."""
-    d = r2_a - r2_b
-    return float(d.sum()), (float(np.sqrt(len(d) * d.var())) if len(d) > 1 else 0.0)
-
-
-def not_worse(behind: float, se: float) -> bool:
-    """Held-out data cannot tell it is worse: within two standard errors, and 3."""
-    return behind < max(3.0, 2 * se)
+from ..stats import not_worse, paired_behind  # noqa: F401  (re-exported for select and image_select)
 
 
 def choose_members(rows: list[dict], cands, evals) -> None:
