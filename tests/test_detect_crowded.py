@@ -225,3 +225,45 @@ def test_a_chain_of_spheres_at_a_high_wall_edge_is_found(spacing, rms_max):
     assert found >= 16 and false == 0
     assert np.sqrt(np.mean(np.square(err))) < rms_max
     assert np.std(pull) < 2.0
+
+
+def _stretched_scene(seed, pair):
+    """Eight round shadows (R 9 px) around one at the centre that is either
+    one sphere's shadow stretched by 1.3 along a random direction (an image
+    intensifier's periphery) or two shadows 0.45 R apart (a deep pair)."""
+    import cv2
+
+    rng = np.random.default_rng(seed)
+    n, R = 300, 9.0
+    sph = [[x + rng.uniform(-0.5, 0.5), y + rng.uniform(-0.5, 0.5), R, 0.07]
+           for x in (60, 150, 240) for y in (60, 150, 240) if (x, y) != (150, 150)]
+    img = render((n, n), np.array(sph), 1.0)
+    x0, y0 = 150.2 + rng.uniform(-0.5, 0.5), 150.4 + rng.uniform(-0.5, 0.5)
+    ang = rng.uniform(0, np.pi)
+    c, s = np.cos(ang), np.sin(ang)
+    if pair:
+        d = 0.45 * R / 2
+        img = img + render((n, n), np.array([[x0 - d * c, y0 - d * s, R, 0.07], [x0 + d * c, y0 + d * s, R, 0.07]]), 1.0)
+    else:
+        A = np.array([[c, -s], [s, c]]) @ np.diag([1.3, 1.0]) @ np.array([[c, s], [-s, c]])
+        M = np.hstack([A, (np.array([x0, y0]) - A @ [x0, y0])[:, None]])
+        one = render((n, n), np.array([[x0, y0, R, 0.07]]), 1.0).astype(np.float32)
+        img = img + cv2.warpAffine(one, M, (n, n), flags=cv2.INTER_LINEAR)
+    return (img + 0.2 + rng.normal(0, 0.01, (n, n))).astype(np.float32), x0, y0
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_a_stretched_shadow_is_one_sphere_and_a_deep_pair_is_two(seed):
+    """Anisotropy 1.3 used to send a lone shadow to the merged blobs, where no
+    split was had and it was dropped (a real C-arm's periphery lost a sphere
+    so); it holds one sphere's attenuation, so it is kept. A deep pair that
+    elongated holds two spheres' and is still split."""
+    opt = DetectOptions(diameter_px=(9.0, 24.0), blur_px=1.0)
+    img, x0, y0 = _stretched_scene(seed, pair=False)
+    blobs = detect_frame(img, opt)
+    assert len(blobs) == 9
+    (b,) = [b for b in blobs if np.hypot(b.x - x0, b.y - y0) < 6]
+    assert np.hypot(b.x - x0, b.y - y0) < 0.05 and b.anisotropy > opt.max_anisotropy
+    img, x0, y0 = _stretched_scene(seed, pair=True)
+    near = [b for b in detect_frame(img, opt) if np.hypot(b.x - x0, b.y - y0) < 6]
+    assert len(near) == 2 and all(np.hypot(b.x - x0, b.y - y0) > 1.5 for b in near)

@@ -38,6 +38,11 @@ _LOCAL_NEIGHBOURS = 3
 # per pixel (in the pixel noise's variance), or as well as the background around it
 # (on a tube's wall: spheres 0.8-4.8 against 2.5-70 around; a diffuse blob 34 against 17)
 _EDGE_MODEL_CHI2 = 4.0
+# a blob set aside as merged that holds one sphere's attenuation (0.6-1.4x the
+# frame's) is one shadow, stretched: an image intensifier's periphery reads
+# 1.19 (and one sphere 1.25) on a real C-arm recording; two shadows that far
+# apart would hold twice the attenuation
+_ONE_SPHERE_ANISOTROPY = 1.5
 
 
 def detect_frame(a: np.ndarray, opt: DetectOptions) -> list[Blob]:
@@ -136,11 +141,13 @@ def measure_crowded(a: np.ndarray, kept: list[Blob], merged: list[Blob], opt: De
     clutter (they carry the flag into the joint fit)."""
     R1, mu1 = _typical(kept, opt)
     seeds = list(seeds)
-    parts, gone = [], set()
+    parts, gone, singles = [], set(), []
     for m in list(merged) + list(deep):
         near = _neighbours(m, [*kept, *merged, *deep, *around], peaks, opt, 1.5 * m.radius + 2, 1.2 * R1)
         found = split(a, m, R1, mu1, opt.blur_px, noise, opt.noise_kappa, near, invalid, peaks)
         if found is None:
+            if _one_sphere(m, kept):
+                singles.append(m)
             continue
         sph, on_edge = found
         gone.add(id(m))
@@ -150,6 +157,8 @@ def measure_crowded(a: np.ndarray, kept: list[Blob], merged: list[Blob], opt: De
         parts.append([Blob(float(x), float(y), float(R), 0.0, float(mu), 0.0, 1.0, list(flags), 0.0)
                       for x, y, R, mu in sph])
     kept = [b for b in kept if id(b) not in gone]
+    kept += [m for m in singles if id(m) not in gone and all(np.hypot(m.x - o.x, m.y - o.y) > 0.8 * max(m.radius, o.radius)
+                                                           for o in kept + [p for own in parts for p in own])]
     # two blobs' splits, or a split and a shadow measured alone, may hold the same
     # sphere (one split's own parts may lie closer: shadows nearly on top of each other)
     unique: list = []
@@ -255,6 +264,23 @@ def measure_crowded(a: np.ndarray, kept: list[Blob], merged: list[Blob], opt: De
     out = [b for i, b in enumerate(out) if b is not None and i not in new]
     return [_beside_edge(a, b, opt, noise, invalid, _neighbours(b, out, peaks, opt)) if "overlap" not in b.flags
             else b for b in out]
+
+
+def _one_sphere(m: Blob, kept: list[Blob]) -> bool:
+    """Whether a blob set aside as merged (too elongated, or a ridge-like
+    peak) is one sphere's shadow after all: the size (0.8-1.25x) and
+    attenuation (0.6-1.4x) of its four nearest shadows measured alone (near,
+    because an intensifier magnifies its periphery), a chord profile as good
+    as the clutter test asks, anisotropy at most ``_ONE_SPHERE_ANISOTROPY``,
+    measured and not truncated."""
+    ref = [b for b in kept if not b.flags] or kept
+    if len(ref) < 2 or "truncated" in m.flags or not np.isfinite(m.sigma) or m.snr <= 0:
+        return False   # (a strong peak handed on unmeasured has no shape to judge)
+    near = sorted(ref, key=lambda b: (b.x - m.x) ** 2 + (b.y - m.y) ** 2)[:4]
+    R = float(np.median([b.radius for b in near]))
+    ratio = m.mu_px * m.radius**3 / float(np.median([b.mu_px * b.radius**3 for b in near]))
+    return (0.8 * R <= m.radius <= 1.25 * R and 0.6 <= ratio < 1.4 and m.anisotropy <= _ONE_SPHERE_ANISOTROPY
+            and m.profile_misfit <= 0.2 + 1.5 / m.radius)
 
 
 def _small(g: list, s0: np.ndarray) -> bool:
