@@ -267,3 +267,29 @@ def test_a_stretched_shadow_is_one_sphere_and_a_deep_pair_is_two(seed):
     img, x0, y0 = _stretched_scene(seed, pair=True)
     near = [b for b in detect_frame(img, opt) if np.hypot(b.x - x0, b.y - y0) < 6]
     assert len(near) == 2 and all(np.hypot(b.x - x0, b.y - y0) > 1.5 for b in near)
+
+
+def test_weak_mottle_beside_spheres_is_not_measured_as_a_crowd(monkeypatch):
+    """Weak bumps 14 px apart (an intensifier's blot: 0.1-0.3 of a sphere's
+    peak) used to chain into a group of seeds, each fitted jointly and
+    dropped (a real 1024² frame took 10 s so). Only peaks as strong as half
+    the frame's lone spheres' are seeds now."""
+    import conecal.detect.crowded as crowded
+
+    calls = []
+    fit = crowded.fit_group
+    monkeypatch.setattr(crowded, "fit_group", lambda *a, **k: calls.append(1) or fit(*a, **k))
+    rng = np.random.default_rng(0)
+    n = 300
+    yy, xx = np.mgrid[0:n, 0:n].astype(np.float32)
+    sph = np.array([[x + rng.uniform(-0.5, 0.5), y + rng.uniform(-0.5, 0.5), 9.0, 0.07]
+                    for x in (50, 130) for y in (50, 130, 250)])
+    img = 0.3 + render((n, n), sph, 1.0)
+    for k in range(9):
+        bx, by = 220 + 14 * (k % 3) + rng.uniform(-2, 2), 190 + 14 * (k // 3) + rng.uniform(-2, 2)
+        img += 0.2 * np.exp(-((xx - bx) ** 2 + (yy - by) ** 2) / (2 * 4.0**2))
+    img = (img + rng.normal(0, 0.01, (n, n))).astype(np.float32)
+    blobs = detect_frame(img, DetectOptions(diameter_px=(8.7, 23.2), blur_px=1.0))
+    for s in sph:
+        assert min(np.hypot(b.x - s[0], b.y - s[1]) for b in blobs) < 0.05
+    assert calls == []

@@ -48,7 +48,7 @@ _ONE_SPHERE_ANISOTROPY = 1.5
 def detect_frame(a: np.ndarray, opt: DetectOptions) -> list[Blob]:
     """All sphere-like shadows in attenuation frame ``a`` (not yet filtered by
     contrast). Raises :class:`conecal.detect.frame.NonFiniteFrame` on NaN/inf."""
-    kept, merged, spoilt, noise, invalid, peaks = detect_blobs(a, opt)
+    kept, merged, spoilt, noise, invalid, peaks, strong = detect_blobs(a, opt)
     if not opt.joint_overlaps or not (kept or merged or spoilt):
         return kept
     # a misshapen blob holding two or more candidate peaks is merged shadows
@@ -61,7 +61,7 @@ def detect_frame(a: np.ndarray, opt: DetectOptions) -> list[Blob]:
     # (a spoilt one too: its neighbour is what spoilt it)
     deep = [b for b in kept + spoilt if mu1 is not None and b.mu_px * b.radius**3 > 1.4 * mu1 * R1**3
             and (b.anisotropy > _DEEP_ANISOTROPY or b.mu_px > _DEEP_DENSITY * mu1)]
-    seeds = _crowd_seeds(peaks, kept, R1, opt)
+    seeds = _crowd_seeds(peaks, kept, R1, opt, strong)
     # a seed where a shadow measured alone was disturbed (flagged clutter) is
     # measured as one: on a wall's edge, the edge's profile is removed first
     disturbed = {(x, y) for x, y in seeds if any((b.x - x) ** 2 + (b.y - y) ** 2 < b.radius**2
@@ -90,10 +90,13 @@ def _typical(kept: list[Blob], opt: DetectOptions):
     return float(np.sqrt(opt.diameter_px[0] * opt.diameter_px[1] / 0.96)) / 2, None
 
 
-def _crowd_seeds(peaks, kept: list[Blob], R1: float, opt: DetectOptions) -> list:
+def _crowd_seeds(peaks, kept: list[Blob], R1: float, opt: DetectOptions, strong=None) -> list:
     """Candidate peaks (x, y) that no shadow measured alone accounts for and
     that lie within touching reach of another shadow or such peak: shadows
-    spoilt by a neighbour, to be measured with it (one per 0.8 R1)."""
+    spoilt by a neighbour, to be measured with it (one per 0.8 R1). A chain
+    of such peaks counts only when it reaches a shadow or holds a peak among
+    ``strong`` (default all: as strong as a sphere's); weak peaks touching
+    only each other are noise on a broad blot."""
     free: list = []
     for px, py in peaks:
         if any((px - b.x) ** 2 + (py - b.y) ** 2 < (0.8 * b.radius) ** 2 for b in kept):
@@ -102,8 +105,24 @@ def _crowd_seeds(peaks, kept: list[Blob], R1: float, opt: DetectOptions) -> list
             continue
         free.append((px, py))
     reach = 1.15 * 2 * R1 + 6 * opt.blur_px + 3
-    pts = [(b.x, b.y) for b in kept] + free
-    return [p for p in free if any(0 < (p[0] - q[0]) ** 2 + (p[1] - q[1]) ** 2 < reach**2 for q in pts)]
+    pts = free + [(b.x, b.y) for b in kept]
+    real = [strong is None or p in strong for p in free] + [True] * (len(pts) - len(free))
+    comp = list(range(len(pts)))
+
+    def root(i):
+        while comp[i] != i:
+            comp[i] = comp[comp[i]]
+            i = comp[i]
+        return i
+
+    touching = set()
+    for i in range(len(free)):
+        for j in range(i + 1, len(pts)):
+            if (pts[i][0] - pts[j][0]) ** 2 + (pts[i][1] - pts[j][1]) ** 2 < reach**2:
+                comp[root(i)] = root(j)
+                touching |= {i, j}
+    anchored = {root(i) for i in range(len(pts)) if real[i]}
+    return [p for i, p in enumerate(free) if i in touching and root(i) in anchored]
 
 
 def _unearned(a, sph: np.ndarray, idx: list, box, opt: DetectOptions, noise: float, others, invalid, chi2: float,

@@ -381,6 +381,12 @@ def refine(a: np.ndarray, x0: float, y0: float, r0: float, opt: DetectOptions, o
                 float(peak / sig_bg), misfit)
 
 
+# a sphere's candidate peak: on a real C-arm recording lone spheres read 51-61
+# (noise sigmas), the noise on an intensifier's dark blot 10-27; a sphere
+# overlapped by another reads more than alone
+_SEED_STRENGTH = 0.5
+
+
 class NonFiniteFrame(ValueError):
     """The frame holds NaN or inf pixels."""
 
@@ -390,7 +396,9 @@ def detect_blobs(a: np.ndarray, opt: DetectOptions):
     (not yet filtered by contrast): (kept blobs, blobs rejected as elongated
     that may be merged shadows, clutter-flagged blobs rejected as misshapen
     that may be spheres beside an edge, the frame's noise sigma, the
-    invalid-pixel mask or None, every candidate peak (x, y)). :func:`conecal.detect.crowded.detect_frame` goes on to
+    invalid-pixel mask or None, every candidate peak (x, y), and the peaks
+    strong enough to be a sphere's: at least ``_SEED_STRENGTH`` of the
+    median peak of the shadows measured alone unflagged). :func:`conecal.detect.crowded.detect_frame` goes on to
     measure touching shadows together.
 
     Raises :class:`NonFiniteFrame` if ``a`` holds NaN or inf pixels.
@@ -475,4 +483,10 @@ def detect_blobs(a: np.ndarray, opt: DetectOptions):
         peak = float(a[iy, ix] - np.median(ring))
         if peak > 0:
             spoilt.append(Blob(cx, cy, r_guess, np.inf, peak / (2 * r_guess), peak, 1.0, ["clutter"], 0.0))
-    return kept, merged, spoilt, noise, invalid, [(cx, cy) for cx, cy, _ in cands]
+    # a candidate peak as strong as half the frame's lone spheres' may be one;
+    # weaker ones (noise on a broad blot, JPEG texture) are no sphere to look for
+    alone = [h for cx, cy, h in cands if any((cx - b.x) ** 2 + (cy - b.y) ** 2 < (0.8 * b.radius) ** 2
+                                             for b in kept if not b.flags)]
+    floor = _SEED_STRENGTH * float(np.median(alone)) if alone else 0.0
+    return kept, merged, spoilt, noise, invalid, [(cx, cy) for cx, cy, _ in cands], \
+        [(cx, cy) for cx, cy, h in cands if h >= floor]
