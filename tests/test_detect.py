@@ -126,3 +126,33 @@ def test_sigma_counts_noise_correlated_over_a_few_pixels():
             err += [b.x - s[0], b.y - s[1]]
             sig += [b.sigma, b.sigma]
     assert 0.75 < np.std(np.array(err) / np.array(sig)) < 1.35
+
+
+def test_a_frame_noisier_than_the_scans_reference_measures_its_own_noise():
+    """A scan's pixel noise is measured on its middle frame; a frame of twice
+    that noise (another dose or gain: a real C-arm recording had two) read
+    every shadow's background as structure and flagged it clutter."""
+    import cv2
+    from dataclasses import replace
+
+    from conecal.detect import DetectOptions, detect_frame
+    from conecal.detect.frame import noise_pixel, noise_small, small_frame
+    from conecal.detect.overlap import render
+
+    def frame(seed, sd):
+        rng = np.random.default_rng(seed)
+        sph = np.array([[x + rng.uniform(-0.5, 0.5), y + rng.uniform(-0.5, 0.5), 9.0, 0.07]
+                        for x in (50, 130, 210) for y in (50, 130, 210)])
+        n = cv2.GaussianBlur(rng.normal(0, sd, (260, 260)).astype(np.float32), (0, 0), 1.2)
+        return (0.3 + render((260, 260), sph, 1.0) + n).astype(np.float32)
+
+    quiet = frame(0, 0.04)
+    opt = DetectOptions(diameter_px=(8.7, 23.2), blur_px=1.0, pixel_noise=noise_pixel(quiet))
+    opt = replace(opt, noise_reference=noise_small(small_frame(quiet, opt)) * opt.factor)
+    for seed in (1, 2, 3):
+        noisy = frame(seed, 0.08)
+        blobs = detect_frame(noisy, opt)
+        assert len(blobs) == 9 and not any("clutter" in b.flags for b in blobs)
+        # with the reference frame's noise, most are flagged
+        old = detect_frame(noisy, replace(opt, noise_reference=0.0))
+        assert sum("clutter" in b.flags for b in old) >= 4

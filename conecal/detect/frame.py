@@ -70,6 +70,10 @@ class DetectOptions:
     # the noise's correlation factor (``noise_correlation``): a centroid's
     # noise variance is this times the white-noise formula; measured once per scan
     noise_kappa: float = 1.0
+    # neighbour-difference noise (``noise_small`` at ``factor``, full-resolution
+    # units) of the frame ``pixel_noise`` was measured on: a frame noisier than
+    # that by 30 % measures its own pixel noise (0: never)
+    noise_reference: float = 0.0
     # touching shadows fitted together, merged blobs split, a straight
     # background step beside a shadow removed (conecal.detect.crowded)
     joint_overlaps: bool = True
@@ -107,7 +111,7 @@ def candidates(a: np.ndarray, opt: DetectOptions, invalid: np.ndarray | None = N
         # dead regions become plain background, so their borders raise no peaks
         a = np.where(invalid, np.float32(np.median(a[~invalid]) if (~invalid).any() else 0.0), a)
     if small is None:
-        small = cv2.resize(a, (cols // f, rows // f), interpolation=cv2.INTER_AREA) if f > 1 else a
+        small = small_frame(a, opt)
     kd = int(np.ceil(opt.diameter_px[1] * 1.5 / f)) | 1
     # a square element is separable (fast) and removes any blob it covers
     kernel = cv2.getStructuringElement(cv2.MORPH_RECT, (kd, kd))
@@ -143,6 +147,13 @@ def candidates(a: np.ndarray, opt: DetectOptions, invalid: np.ndarray | None = N
     if with_ridges:
         return out, float(noise_small(small)), ridges
     return out, float(noise_small(small))
+
+
+def small_frame(a: np.ndarray, opt: DetectOptions) -> np.ndarray:
+    """Frame ``a`` downsampled by ``opt.factor`` (area mean), where candidates are sought."""
+    rows, cols = a.shape
+    f = opt.factor
+    return cv2.resize(a, (cols // f, rows // f), interpolation=cv2.INTER_AREA) if f > 1 else a
 
 
 def noise_small(img: np.ndarray) -> float:
@@ -404,8 +415,7 @@ def detect_blobs(a: np.ndarray, opt: DetectOptions):
     Raises :class:`NonFiniteFrame` if ``a`` holds NaN or inf pixels.
     """
     rows, cols = a.shape
-    f = opt.factor
-    small = cv2.resize(a, (cols // f, rows // f), interpolation=cv2.INTER_AREA) if f > 1 else a
+    small = small_frame(a, opt)
     smax = float(small.max())
     if not np.isfinite(smax) or not np.isfinite(small.min()):
         raise NonFiniteFrame()
@@ -419,7 +429,12 @@ def detect_blobs(a: np.ndarray, opt: DetectOptions):
     noise *= opt.factor  # the downsampled frame averages factor**2 pixels
     # the clutter test compares a background fit's scatter with the pixel noise
     # at the fit's own scale (correlated noise included)
-    noise = max(noise, opt.pixel_noise)
+    pixel = opt.pixel_noise
+    if opt.noise_reference and noise > 1.3 * opt.noise_reference:
+        # noisier than the frame the scan's noise was measured on (a frame of
+        # another dose or gain): every shadow there read as clutter
+        pixel = noise_pixel(a)
+    noise = max(noise, pixel)
     r_guess = opt.diameter_px[0] / 2 if opt.diameter_px[1] / opt.diameter_px[0] < 1.6 else np.mean(opt.diameter_px) / 2
     blobs: list[Blob] = []
     rough = [(cx, cy, opt.diameter_px[0] / 2) for cx, cy, _ in cands]

@@ -12,7 +12,7 @@ from .. import __version__
 from ..scan import Scan
 from . import kernels
 from .crowded import detect_frame
-from .frame import DetectOptions, NonFiniteFrame, noise_correlation, noise_pixel
+from .frame import DetectOptions, NonFiniteFrame, noise_correlation, noise_pixel, noise_small, small_frame
 from .track import track
 
 MARKERS_FORMAT = "conecal-markers/1"
@@ -124,7 +124,8 @@ def scan_options(scan: Scan, opt: DetectOptions) -> DetectOptions:
         scan.stack.read(frames_idx[0], check=False)   # a bad stack is named at its first frame
         mid = scan.stack.read(frames_idx[len(frames_idx) // 2], check=False)
         if np.isfinite(mid).all():
-            opt = replace(opt, pixel_noise=noise_pixel(mid), noise_kappa=noise_correlation(mid))
+            opt = replace(opt, pixel_noise=noise_pixel(mid), noise_kappa=noise_correlation(mid),
+                          noise_reference=noise_small(small_frame(mid, opt)) * opt.factor)
     return opt
 
 
@@ -226,6 +227,7 @@ def assemble(scan: Scan, opt: DetectOptions, frames_idx: list[int], results: lis
             "detector": {"shape": [rows, cols]},
             "options": {"diameter_px": list(opt.diameter_px), "threshold": opt.threshold, "blur_px": opt.blur_px,
                         "pixel_noise": round(opt.pixel_noise, 8), "noise_kappa": round(opt.noise_kappa, 4),
+                        "noise_reference": round(opt.noise_reference, 8),
                         "max_anisotropy": opt.max_anisotropy, "min_relative_contrast": opt.min_relative_contrast},
             "reference_mu_px": round(ref, 6),
             "identities": "phantom ids are assigned by fit-pose" if robot else "tracked across frames",
