@@ -156,3 +156,31 @@ def test_a_frame_noisier_than_the_scans_reference_measures_its_own_noise():
         # with the reference frame's noise, most are flagged
         old = detect_frame(noisy, replace(opt, noise_reference=0.0))
         assert sum("clutter" in b.flags for b in old) >= 4
+
+
+def test_a_sphere_whose_core_is_darker_than_the_dead_level_is_measured():
+    """A dense ball (or a display image windowed to black) takes its core
+    above max_attenuation; that was masked like the outside of the field, so
+    the sphere was lost or flagged truncated. Only regions larger than a
+    shadow (and single pixels) are no measurement now; the outside stays so."""
+    from conecal.detect import DetectOptions, detect_frame
+    from conecal.detect.frame import invalid_mask
+    from conecal.detect.overlap import render
+
+    rng = np.random.default_rng(2)
+    sph = np.array([[x + rng.uniform(-0.5, 0.5), y + rng.uniform(-0.5, 0.5), R, mu]
+                    for (x, y, R, mu) in ((60, 60, 9.0, 0.3), (150, 60, 9.0, 0.07), (60, 150, 12.0, 0.3))])
+    img = 0.3 + render((240, 240), sph, 1.0) + rng.normal(0, 0.01, (240, 240))
+    yy, xx = np.mgrid[0:240, 0:240]
+    img[(xx - 60) ** 2 + (yy - 60) ** 2 > 175**2] = 6.0    # outside a circular field
+    img[200, 100] = 6.0                                     # a dead pixel
+    img = img.astype(np.float32)
+    opt = DetectOptions(diameter_px=(12.0, 30.0), blur_px=1.0)
+    assert (img > opt.max_attenuation)[50:70, 50:70].sum() > 20   # the dense cores are that dark
+    mask = invalid_mask(img, opt)
+    assert mask[235, 235] and mask[200, 100] and not mask[60, 60]
+    blobs = detect_frame(img, opt)
+    assert len(blobs) == 3
+    for s in sph:
+        b = min(blobs, key=lambda b: np.hypot(b.x - s[0], b.y - s[1]))
+        assert np.hypot(b.x - s[0], b.y - s[1]) < 0.1 and "truncated" not in b.flags

@@ -293,3 +293,19 @@ def test_weak_mottle_beside_spheres_is_not_measured_as_a_crowd(monkeypatch):
     for s in sph:
         assert min(np.hypot(b.x - s[0], b.y - s[1]) for b in blobs) < 0.05
     assert calls == []
+
+
+def test_weak_peaks_chain_into_seeds_only_through_shadows_or_strong_peaks():
+    """Crowd seeds: unaccounted peaks within touching reach (here 20.5 px) of
+    a shadow measured alone, or of a peak linked to one; a link between two
+    weak peaks carries nothing (a spine's edges raised a 34-member group)."""
+    from conecal.detect.crowded import _crowd_seeds
+    from conecal.detect.frame import Blob
+
+    opt = DetectOptions(diameter_px=(7.2, 19.2), blur_px=1.0)
+    kept = [Blob(0.0, 0.0, 5.0, 0.05, 0.05, 1.0, 1.0, [], 50.0)]
+    chain = [(15.0, 0.0), (30.0, 0.0), (45.0, 0.0)]
+    assert _crowd_seeds(chain, kept, 5.0, opt, strong=[]) == [(15.0, 0.0)]
+    assert _crowd_seeds(chain, kept, 5.0, opt, strong=[(30.0, 0.0)]) == chain
+    assert _crowd_seeds(chain, kept, 5.0, opt) == chain                 # every peak strong
+    assert _crowd_seeds(chain[1:], kept, 5.0, opt, strong=[]) == []     # weak and away from any shadow

@@ -119,8 +119,11 @@ def _crowd_seeds(peaks, kept: list[Blob], R1: float, opt: DetectOptions, strong=
     for i in range(len(free)):
         for j in range(i + 1, len(pts)):
             if (pts[i][0] - pts[j][0]) ** 2 + (pts[i][1] - pts[j][1]) ** 2 < reach**2:
-                comp[root(i)] = root(j)
                 touching |= {i, j}
+                # (two weak peaks do not carry a chain: over a spine's edges one
+                # weak peak touches the next across the whole frame)
+                if real[i] or real[j]:
+                    comp[root(i)] = root(j)
     anchored = {root(i) for i in range(len(pts)) if real[i]}
     return [p for i, p in enumerate(free) if i in touching and root(i) in anchored]
 

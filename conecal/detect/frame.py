@@ -398,6 +398,22 @@ def refine(a: np.ndarray, x0: float, y0: float, r0: float, opt: DetectOptions, o
 _SEED_STRENGTH = 0.5
 
 
+def invalid_mask(a: np.ndarray, opt: DetectOptions) -> np.ndarray:
+    """Pixels of frame ``a`` that are no measurement, widened by 2 px: the
+    regions above ``opt.max_attenuation`` larger than twice the largest
+    expected shadow (outside a circular field, dead columns) and single hot
+    or dead pixels (up to 4 px). A shadow-sized region that dark is a
+    sphere's core (a dense ball, or a display image windowed to black): it
+    was masked, and the sphere lost or flagged truncated."""
+    over = (a > opt.max_attenuation).astype(np.uint8)
+    n, lab, stats, _ = cv2.connectedComponentsWithStats(over, connectivity=8)
+    area = stats[:, cv2.CC_STAT_AREA]
+    shadow = np.pi * (opt.diameter_px[1] / 2) ** 2
+    drop = (area > 2 * shadow) | (area <= 4)
+    drop[0] = False   # (the background label)
+    return cv2.dilate(drop[lab].astype(np.uint8), np.ones((5, 5), np.uint8)).astype(bool)
+
+
 class NonFiniteFrame(ValueError):
     """The frame holds NaN or inf pixels."""
 
@@ -420,9 +436,8 @@ def detect_blobs(a: np.ndarray, opt: DetectOptions):
     if not np.isfinite(smax) or not np.isfinite(small.min()):
         raise NonFiniteFrame()
     invalid = None
-    # dead or outside-the-field regions are large; single hot pixels are handled per window
     if opt.max_attenuation is not None and smax > opt.max_attenuation:
-        invalid = cv2.dilate((a > opt.max_attenuation).astype(np.uint8), np.ones((5, 5), np.uint8)).astype(bool)
+        invalid = invalid_mask(a, opt)
     cands, noise, ridges = candidates(a, opt, invalid, small if invalid is None else None, with_ridges=True)
     if not opt.joint_overlaps:
         ridges = []
