@@ -184,3 +184,25 @@ def test_a_sphere_whose_core_is_darker_than_the_dead_level_is_measured():
     for s in sph:
         b = min(blobs, key=lambda b: np.hypot(b.x - s[0], b.y - s[1]))
         assert np.hypot(b.x - s[0], b.y - s[1]) < 0.1 and "truncated" not in b.flags
+
+
+def test_the_scan_filter_judges_contrast_and_size_in_each_frame():
+    """A frame windowed darker (a display image with a spine over the
+    phantom) holds every sphere at a third of the scan's contrast: kept. A
+    ghost at 5 % of its own frame's markers and a 3 px speck among 10 px
+    spheres: removed; a declared 1:3 size range keeps a small sphere."""
+    from conecal.detect import DetectOptions
+    from conecal.detect.frame import Blob
+    from conecal.detect.pipeline import scan_filter
+
+    def blob(mu, r=10.0, flags=()):
+        return Blob(0.0, 0.0, r, 0.05, mu, 1.0, 1.0, list(flags), 50.0)
+
+    opt = DetectOptions(diameter_px=(8.0, 24.0))
+    bright = [blob(0.15) for _ in range(6)] + [blob(0.0075)]          # the last: a lag ghost
+    dark = [blob(0.05) for _ in range(6)] + [blob(0.05, r=3.0)]       # the last: a speck
+    out, ref = scan_filter([bright, bright, dark], opt)
+    assert ref == 0.15
+    assert [len(r) for r in out] == [6, 6, 6]
+    out, _ = scan_filter([bright, dark], opt, spread=1 / 3)
+    assert [len(r) for r in out] == [6, 7]

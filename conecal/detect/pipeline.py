@@ -192,16 +192,47 @@ def measure_frames(scan: Scan, opt: DetectOptions, frames_idx: list[int], *, wor
     return opt, results
 
 
-def assemble(scan: Scan, opt: DetectOptions, frames_idx: list[int], results: list[list]) -> dict:
-    """The markers document from every frame's blobs: scan-wide contrast
-    filter, identities across frames, frames in log order."""
-    # Ghosts (detector lag) and faint blobs are sphere-shaped but far weaker
-    # than the scan's markers, measured as attenuation per px of chord.
+def scan_filter(results: list[list], opt: DetectOptions, spread: float = 1.0) -> tuple[list[list], float]:
+    """Every frame's blobs without the ones no marker makes, and the scan's
+    reference contrast (attenuation per px of chord). Ghosts (detector lag)
+    and faint blobs are sphere-shaped but far weaker than the markers: below
+    ``opt.min_relative_contrast`` of the scan's median unflagged contrast, or
+    of the frame's own when that is lower (:func:`_frame_contrast`). A speck
+    or an edge's corner measured as a 3 px "sphere" among 10 px ones: under
+    half the frame's sphere radius times ``spread`` (the declared diameters'
+    smallest over largest)."""
     mus = np.array([b.mu_px for res in results for b in res if not b.flags])
     if mus.size == 0:
         mus = np.array([b.mu_px for res in results for b in res])
     ref = float(np.median(mus)) if mus.size else 0.0
-    results = [[b for b in res if b.mu_px >= opt.min_relative_contrast * ref] for res in results]
+    results = [[b for b in res if b.mu_px >= opt.min_relative_contrast * min(ref, _frame_contrast(res, ref))]
+               for res in results]
+    return [[b for b in res if b.radius >= 0.5 * spread * _frame_radius(res)] for res in results], ref
+
+
+def _frame_contrast(res: list, ref: float) -> float:
+    """The frame's own marker contrast (median attenuation per px of chord
+    of its unflagged blobs, when 3 or more): a display image windowed per
+    frame (a spine over the phantom) holds every sphere at a third of the
+    scan's contrast, and the scan's reference removed them all; a ghost is
+    faint beside its own frame's markers. ``ref`` when the frame has fewer."""
+    own = [b.mu_px for b in res if not b.flags]
+    return float(np.median(own)) if len(own) >= 3 else ref
+
+
+def _frame_radius(res: list) -> float:
+    """The median radius (px) of the frame's unflagged blobs, when 3 or more,
+    else of all its blobs, when 3 or more (a spine over every sphere); else 0."""
+    own = [b.radius for b in res if not b.flags]
+    own = own if len(own) >= 3 else [b.radius for b in res]
+    return float(np.median(own)) if len(own) >= 3 else 0.0
+
+
+def assemble(scan: Scan, opt: DetectOptions, frames_idx: list[int], results: list[list]) -> dict:
+    """The markers document from every frame's blobs: scan-wide contrast
+    filter, identities across frames, frames in log order."""
+    ds = (scan.config.markers.diameters or (scan.config.markers.diameter,)) if scan.config.markers else (1.0,)
+    results, ref = scan_filter(results, opt, min(ds) / max(ds))
     robot = scan.config.motion in ("robot", "free")
     # A robot re-places the holder with mm-level jumps between frames, and free
     # poses are unrelated, so image tracks are not identities there: fit-pose
