@@ -401,17 +401,18 @@ _SEED_STRENGTH = 0.5
 def invalid_mask(a: np.ndarray, opt: DetectOptions) -> np.ndarray:
     """Pixels of frame ``a`` that are no measurement, widened by 2 px: the
     regions above ``opt.max_attenuation`` larger than twice the largest
-    expected shadow (outside a circular field, dead columns) and single hot
-    or dead pixels (up to 4 px). A shadow-sized region that dark is a
+    expected shadow (outside a circular field, dead columns) and dead pixels
+    (over 2.0 above their 3 x 3 median). A shadow-sized region that dark is a
     sphere's core (a dense ball, or a display image windowed to black): it
     was masked, and the sphere lost or flagged truncated."""
     over = (a > opt.max_attenuation).astype(np.uint8)
-    n, lab, stats, _ = cv2.connectedComponentsWithStats(over, connectivity=8)
-    area = stats[:, cv2.CC_STAT_AREA]
-    shadow = np.pi * (opt.diameter_px[1] / 2) ** 2
-    drop = (area > 2 * shadow) | (area <= 4)
-    drop[0] = False   # (the background label)
-    return cv2.dilate(drop[lab].astype(np.uint8), np.ones((5, 5), np.uint8)).astype(bool)
+    _, lab, stats, _ = cv2.connectedComponentsWithStats(over, connectivity=8)
+    big = stats[:, cv2.CC_STAT_AREA] > 2 * np.pi * (opt.diameter_px[1] / 2) ** 2
+    big[0] = False   # (the background label)
+    # a dead pixel stands far above its neighbours; a dark core's pixels (an
+    # 8-bit display's few grey levels there) only just cross the level
+    dead = over.astype(bool) & (a - cv2.medianBlur(a, 3) > 2.0)
+    return cv2.dilate((big[lab] | dead).astype(np.uint8), np.ones((5, 5), np.uint8)).astype(bool)
 
 
 class NonFiniteFrame(ValueError):
