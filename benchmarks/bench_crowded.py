@@ -29,7 +29,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from conecal.detect import DetectOptions, detect_frame  # noqa: E402
-from conecal.detect.frame import noise_pixel  # noqa: E402
+from conecal.detect.noise import noise_pixel  # noqa: E402
 
 SS = 5
 

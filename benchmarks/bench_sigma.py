@@ -37,10 +37,10 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bench_crowded import draw  # noqa: E402
 
 from conecal.detect import DetectOptions, detect_frame  # noqa: E402
-from conecal.detect.frame import noise_pixel  # noqa: E402
+from conecal.detect.noise import noise_pixel  # noqa: E402
 
 try:
-    from conecal.detect.frame import noise_correlation  # noqa: E402
+    from conecal.detect.noise import noise_correlation  # noqa: E402
 except ImportError:          # before the correlation factor existed
     noise_correlation = None
 

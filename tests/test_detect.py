@@ -105,7 +105,7 @@ def test_sigma_counts_noise_correlated_over_a_few_pixels():
     import cv2
 
     from conecal.detect import DetectOptions, detect_frame
-    from conecal.detect.frame import noise_correlation, noise_pixel
+    from conecal.detect.noise import noise_correlation, noise_pixel
     from conecal.detect.overlap import render
 
     rng = np.random.default_rng(5)
@@ -136,7 +136,8 @@ def test_a_frame_noisier_than_the_scans_reference_measures_its_own_noise():
     from dataclasses import replace
 
     from conecal.detect import DetectOptions, detect_frame
-    from conecal.detect.frame import noise_pixel, noise_small, small_frame
+    from conecal.detect.frame import small_frame
+    from conecal.detect.noise import noise_pixel, noise_small
     from conecal.detect.overlap import render
 
     def frame(seed, sd):

@@ -76,7 +76,7 @@ def test_a_rod_is_not_split_into_spheres():
 def test_a_sphere_beside_a_plate_edge_is_measured_with_the_step_removed():
     import cv2
 
-    from conecal.detect.frame import noise_pixel
+    from conecal.detect.noise import noise_pixel
 
     rng = np.random.default_rng(5)
     R, errs, sig = 8.0, [], []
@@ -141,7 +141,7 @@ def test_a_sphere_beside_a_tube_wall_is_measured_with_the_wall_removed():
     fraction of a pixel and flagged; with the wall's profile fitted it is not."""
     import cv2
 
-    from conecal.detect.frame import noise_pixel
+    from conecal.detect.noise import noise_pixel
 
     rng = np.random.default_rng(8)
     R, errs, sig, pulled = 6.0, [], [], []
@@ -209,7 +209,7 @@ def test_a_chain_of_spheres_at_a_high_wall_edge_is_found(spacing, rms_max):
     wall's edge twice their height: measured with the edge's profile removed
     (a plane or quadratic under the chain swells a sphere to follow the wall;
     before, 10 and 0 of 36 were found, and near ones 2 px off with sigma 0.1)."""
-    from conecal.detect.frame import noise_pixel
+    from conecal.detect.noise import noise_pixel
 
     found, err, pull, false = 0, [], [], 0
     for seed in (0, 1):

@@ -12,7 +12,8 @@ from .. import __version__
 from ..scan import Scan
 from . import kernels
 from .crowded import detect_frame
-from .frame import DetectOptions, NonFiniteFrame, noise_correlation, noise_pixel, noise_small, small_frame
+from .frame import DetectOptions, NonFiniteFrame, small_frame
+from .noise import noise_correlation, noise_pixel, noise_small
 from .track import track
 
 MARKERS_FORMAT = "conecal-markers/1"
