@@ -30,6 +30,8 @@ import cv2
 import numpy as np
 import tifffile
 
+from bench_real_carm import write_free_scan
+
 
 def write_scan(images: Path, scan: Path) -> list[str]:
     files = sorted(f for f in images.glob("*.BMP") if "Invalid" not in f.name)
@@ -38,27 +40,7 @@ def write_scan(images: Path, scan: Path) -> list[str]:
     # grey 0 (outside the field) kept finite: 0.5/255
     stack = np.stack([np.maximum(cv2.imread(str(f), cv2.IMREAD_GRAYSCALE).astype(np.float32), 0.5) / 255.0
                       for f in files])
-    scan.mkdir(parents=True)
-    tifffile.imwrite(scan / "projections.tif", stack, photometric="minisblack")
-    (scan / "log.csv").write_text("frame,time\n" + "".join(f"{k},{k}.0\n" for k in range(len(files))))
-    (scan / "phantom.csv").write_text("id,x,y,z\n" + "\n".join(f"{i},{10.0 * i},0,0" for i in range(18)) + "\n")
-    rows, cols = stack.shape[1:]
-    (scan / "scan.yaml").write_text(f"""format: conecal-scan/1
-motion: free
-projections: projections.tif
-values: transmission
-log: log.csv
-detector:
-  rows: {rows}
-  cols: {cols}
-  pixel_pitch: [0.3, 0.3]
-nominal:
-  sod: 600.0
-  sdd: 1000.0
-markers:
-  diameter: 2.5
-  phantom: phantom.csv
-""")
+    write_free_scan(scan, stack, [f"{i},{10.0 * i},0,0" for i in range(18)], 0.3, 600.0, 1000.0, 2.5)
     return [re.sub(r"^.*\.\d+_", "", f.stem) for f in files]
 
 

@@ -41,37 +41,46 @@ import numpy as np
 PITCH_MM = 20.0
 
 
-def write_scan(images: Path, scan: Path) -> int:
-    import cv2
+def write_free_scan(scan: Path, stack: np.ndarray, phantom: list[str], pixel_mm: float, sod: float, sdd: float,
+                    diameter_mm: float) -> None:
+    """A ``motion: free`` scan at ``scan``: ``stack`` (frames, rows, cols) as
+    transmission, one log row per frame, ``phantom`` rows "id,x,y,z" (mm) and
+    the nominal geometry given. Shared by the real-recording benchmarks."""
     import tifffile
 
-    files = sorted(images.glob("*.jpg"), key=lambda p: int(re.sub(r"\D", "", p.stem) or 0))
-    if not files:
-        raise SystemExit(f"{images}: no .jpg frames")
-    stack = np.stack([cv2.imread(str(f), cv2.IMREAD_GRAYSCALE).astype(np.float32) / 255.0 for f in files])
     scan.mkdir(parents=True)
     # one page per frame even for a 3- or 4-frame stack (else read as colour samples)
     tifffile.imwrite(scan / "projections.tif", stack, photometric="minisblack")
-    (scan / "log.csv").write_text("frame,time\n" + "".join(f"{k},{k}.0\n" for k in range(len(files))))
-    rows = [f"{i},{(i % 5 - 2) * PITCH_MM},{(i // 5 - 2) * PITCH_MM},0" for i in range(25)]
-    (scan / "phantom.csv").write_text("id,x,y,z\n" + "\n".join(rows) + "\n")
-    rows_, cols = stack.shape[1:]
+    (scan / "log.csv").write_text("frame,time\n" + "".join(f"{k},{k}.0\n" for k in range(len(stack))))
+    (scan / "phantom.csv").write_text("id,x,y,z\n" + "\n".join(phantom) + "\n")
+    rows, cols = stack.shape[1:]
     (scan / "scan.yaml").write_text(f"""format: conecal-scan/1
 motion: free
 projections: projections.tif
 values: transmission
 log: log.csv
 detector:
-  rows: {rows_}
+  rows: {rows}
   cols: {cols}
-  pixel_pitch: [0.23, 0.23]
+  pixel_pitch: [{pixel_mm}, {pixel_mm}]
 nominal:
-  sod: 900.0
-  sdd: 1000.0
+  sod: {sod}
+  sdd: {sdd}
 markers:
-  diameter: 3.0
+  diameter: {diameter_mm}
   phantom: phantom.csv
 """)
+
+
+def write_scan(images: Path, scan: Path) -> int:
+    import cv2
+
+    files = sorted(images.glob("*.jpg"), key=lambda p: int(re.sub(r"\D", "", p.stem) or 0))
+    if not files:
+        raise SystemExit(f"{images}: no .jpg frames")
+    stack = np.stack([cv2.imread(str(f), cv2.IMREAD_GRAYSCALE).astype(np.float32) / 255.0 for f in files])
+    rows = [f"{i},{(i % 5 - 2) * PITCH_MM},{(i // 5 - 2) * PITCH_MM},0" for i in range(25)]
+    write_free_scan(scan, stack, rows, 0.23, 900.0, 1000.0, 3.0)
     return len(files)
 
 
