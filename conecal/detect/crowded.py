@@ -18,7 +18,7 @@ import numpy as np
 
 from .frame import Blob, DetectOptions, detect_blobs, refine
 from .background import fit_profile, structured
-from .overlap import disc_misfit, fit_group, group_box, groups_of, joint_sigma, render_box
+from .overlap import components, disc_misfit, fit_group, group_box, groups_of, joint_sigma, render_box
 from .split import peaks_in, split
 
 # the cone-beam shadow's centroid and the model circle's centre differ by
@@ -107,15 +107,7 @@ def _crowd_seeds(peaks, kept: list[Blob], R1: float, opt: DetectOptions, strong=
     reach = 1.15 * 2 * R1 + 6 * opt.blur_px + 3
     pts = free + [(b.x, b.y) for b in kept]
     real = [strong is None or p in strong for p in free] + [True] * (len(pts) - len(free))
-    comp = list(range(len(pts)))
-
-    def root(i):
-        while comp[i] != i:
-            comp[i] = comp[comp[i]]
-            i = comp[i]
-        return i
-
-    touching = set()
+    touching, links = set(), []
     for i in range(len(free)):
         for j in range(i + 1, len(pts)):
             if (pts[i][0] - pts[j][0]) ** 2 + (pts[i][1] - pts[j][1]) ** 2 < reach**2:
@@ -123,9 +115,10 @@ def _crowd_seeds(peaks, kept: list[Blob], R1: float, opt: DetectOptions, strong=
                 # (two weak peaks do not carry a chain: over a spine's edges one
                 # weak peak touches the next across the whole frame)
                 if real[i] or real[j]:
-                    comp[root(i)] = root(j)
-    anchored = {root(i) for i in range(len(pts)) if real[i]}
-    return [p for i, p in enumerate(free) if i in touching and root(i) in anchored]
+                    links.append((i, j))
+    comp = components(len(pts), links)
+    anchored = {comp[i] for i in range(len(pts)) if real[i]}
+    return [p for i, p in enumerate(free) if i in touching and comp[i] in anchored]
 
 
 def _unearned(a, sph: np.ndarray, idx: list, box, opt: DetectOptions, noise: float, others, invalid, chi2: float,

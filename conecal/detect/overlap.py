@@ -204,23 +204,24 @@ def disc_misfit(a: np.ndarray, fit, blur: float, noise: float, mask_out=(), inva
     return (float(z2[on].mean()) if on.any() else np.inf), (float(z2[off].mean()) if off.sum() >= 20 else np.inf)
 
 
+def components(n: int, pairs) -> np.ndarray:
+    """Connected-component label of each of ``n`` nodes joined by ``pairs`` (i, j)."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    ij = np.array(list(pairs), int).reshape(-1, 2)
+    graph = coo_matrix((np.ones(len(ij)), (ij[:, 0], ij[:, 1])), shape=(n, n))
+    return connected_components(graph, directed=False)[1]
+
+
 def groups_of(blobs, blur: float) -> list[list[int]]:
-    """Indices of blobs whose centroid windows meet, as connected groups of 2 or more."""
+    """Indices of blobs whose centroid windows meet, as connected groups of 2
+    or more (ordered by their first member)."""
     n = len(blobs)
-    parent = list(range(n))
-
-    def root(i):
-        while parent[i] != i:
-            parent[i] = parent[parent[i]]
-            i = parent[i]
-        return i
-
-    for i in range(n):
-        for j in range(i + 1, n):
-            reach = 1.15 * (blobs[i].radius + blobs[j].radius) + 6 * blur + 3
-            if (blobs[i].x - blobs[j].x) ** 2 + (blobs[i].y - blobs[j].y) ** 2 < reach**2:
-                parent[root(i)] = root(j)
+    pairs = [(i, j) for i in range(n) for j in range(i + 1, n)
+             if (blobs[i].x - blobs[j].x) ** 2 + (blobs[i].y - blobs[j].y) ** 2
+             < (1.15 * (blobs[i].radius + blobs[j].radius) + 6 * blur + 3) ** 2]
     out: dict[int, list[int]] = {}
-    for i in range(n):
-        out.setdefault(root(i), []).append(i)
+    for i, c in enumerate(components(n, pairs)):
+        out.setdefault(int(c), []).append(i)
     return [g for g in out.values() if len(g) > 1]
