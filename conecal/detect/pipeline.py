@@ -206,9 +206,10 @@ def scan_filter(results: list[list], opt: DetectOptions, spread: float = 1.0) ->
     if mus.size == 0:
         mus = np.array([b.mu_px for res in results for b in res])
     ref = float(np.median(mus)) if mus.size else 0.0
-    results = [[b for b in res if b.mu_px >= opt.min_relative_contrast * min(ref, _frame_contrast(res, ref))]
-               for res in results]
-    return [[b for b in res if b.radius >= 0.5 * spread * _frame_radius(res)] for res in results], ref
+    floors = [opt.min_relative_contrast * min(ref, _frame_contrast(res, ref)) for res in results]
+    results = [[b for b in res if b.mu_px >= f] for res, f in zip(results, floors)]
+    floors = [0.5 * spread * _frame_radius(res) for res in results]
+    return [[b for b in res if b.radius >= f] for res, f in zip(results, floors)], ref
 
 
 def _frame_contrast(res: list, ref: float) -> float:
