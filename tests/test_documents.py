@@ -48,7 +48,7 @@ def results(system, tmp_path_factory):
     poses = {"format": "conecal-poses/1", "software": "test", "scan": str(lin), "motion": "robot",
              "source": g["source"], "detector": g["detector"], "axes": [],
              "frames": [{"frame": k, "status": "ok", "R": [[c, -s, 0], [s, c, 0], [0, 0, 1]], "t": [0, 0, k]}
-                        for k in range(3)] + [{"frame": 3, "status": "rejected: test", "R": None, "t": None}]}
+                        for k in range(3)] + [{"frame": 3, "status": "rejected: test", "reason": "few_markers", "R": None, "t": None}]}
     (out / "poses.json").write_text(json.dumps(poses))
     r = run("simulate", "robot", out / "robot", "--frames", "2")
     assert r.exit_code == 0, r.output
@@ -100,6 +100,7 @@ POSES_CORRUPTIONS = [
     (("frames", 0, "t"), [0.0, 0.0]), (("frames", 0, "frame"), -1), (("source",), None), (("frames",), {}),
     (("detector", "pixel_pitch"), [-1, 0.2]), (("frames", 0, "R"), [[1, 0, 0], [0, 1, 0]]),
     (("frames", 1, "R"), [[1, 0, 0], [0, 1, 0], [0, 0, -1]]), (("frames", 2, "t"), None), (("motion",), "helicopter"),
+    (("frames", 3, "reason"), "bad luck"), (("frames", 0, "reason"), "residual"),
 ]
 DIAGNOSIS_CORRUPTIONS = [
     (("verdict",), DELETE), (("result",), 5), (("effects",), "x"), (("located",), [{"size": 1}]),
@@ -257,3 +258,18 @@ def test_relative_paths_resolve_from_the_result_file(results, tmp_path, monkeypa
     r = run("export", home / "results" / "g.json", "--scan", home / "scans" / "rot", "--format", "astra",
             "-o", tmp_path / "v.txt")
     assert r.exit_code == 0, r.output
+
+
+def test_status_sentence_is_made_from_its_fields_and_a_bad_reason_is_refused():
+    from conecal.documents.status import OK, REASONS, Status, rejected, reason_of
+
+    st = rejected("residual", "residual 0.9 px RMS, above 0.5 px")
+    assert st.fields() == {"status": "rejected: residual 0.9 px RMS, above 0.5 px", "reason": "residual"}
+    assert OK.fields() == {"status": "ok"} and OK.ok and not st.ok
+    assert reason_of(st.fields()) == "residual"
+    # a file written before the reason field: the sentence's words stand in
+    assert reason_of({"status": "rejected: 3 markers detected, fewer than 6"}) == "3 markers detected, fewer than 6"
+    for bad in (("ok", "residual", ""), ("rejected", "", "x"), ("rejected", "bad luck", "x"), ("fine", "", "")):
+        with pytest.raises(ValueError):
+            Status(*bad)
+    assert set(REASONS) >= {"few_markers", "ambiguous_identity", "mirror_pose", "residual"}

@@ -82,7 +82,7 @@ def test_a_pose_beyond_the_prior_is_rejected_not_wrong(robot_scan, tmp_path):
         xy = np.array([[m["x"], m["y"]] for m in fr["markers"] if not m["flags"]])
         sg = np.full(len(xy), 0.05)
         p = fit_frame(k0, g, s.phantom.positions, s.phantom.ids, 0.4, xy, sg, T.R[k0], T.t[k0], PoseOptions(), screw)
-        if p.status == "ok" and {1, 50} <= set(p.ids):
+        if p.status.ok and {1, 50} <= set(p.ids):
             break
     else:
         pytest.skip("no frame shows both helix ends")
@@ -92,12 +92,12 @@ def test_a_pose_beyond_the_prior_is_rejected_not_wrong(robot_scan, tmp_path):
         # the joint-log pose off by exactly one sphere's screw: everything but the ends fits
         Tbad = T[k0] @ S
         p = fit_frame(k0, g, s.phantom.positions, s.phantom.ids, 0.4, xy, sg, Tbad.R, Tbad.t, PoseOptions(), screw)
-        assert p.status.startswith("rejected: "), p.status
+        assert (p.status.state, p.status.reason) == ("rejected", "screw_shift"), p.status
     # spurious detections only: rejected with a reason
     junk = np.random.default_rng(0).uniform(50, 590, (30, 2))
     p = fit_frame(0, g, s.phantom.positions, s.phantom.ids, 0.4, junk, np.full(30, 0.05), T.R[0], T.t[0], PoseOptions(),
                   screw)
-    assert p.status.startswith("rejected: ")
+    assert p.status.state == "rejected" and p.status.sentence.startswith("rejected: "), p.status
 
 
 def test_fit_pose_needs_a_phantom(tmp_path, small_linear_scan):
@@ -149,10 +149,10 @@ def test_a_frame_the_log_cannot_start_is_found_by_the_pattern_search(robot_scan)
         good = fit_frame(k, g, P, I, 0.4, xy, sg, T.R[k], T.t[k], PoseOptions(), screw)
         bad = T[k] @ off
         p = fit_frame(k, g, P, I, 0.4, xy, sg, bad.R, bad.t, PoseOptions(), screw)
-        assert p.status.startswith("rejected: ")
+        assert p.status.state == "rejected"
         r = rescue_frame(k, g, P, I, 0.4, xy, sg, bad.R, bad.t, PoseOptions(), screw, p)
-        if r.status == "ok":      # found: the pose the log could not reach, never another
-            assert good.status == "ok" and r.found_by.startswith("pattern search")
+        if r.status.ok:      # found: the pose the log could not reach, never another
+            assert good.status.ok and r.found_by.startswith("pattern search")
             assert np.linalg.norm(r.t - good.t) < 0.05 and np.abs(r.R - good.R).max() < 1e-3
             rescued += 1
         else:                     # not sure (a helix shifted by a sphere): the rejection stands

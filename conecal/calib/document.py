@@ -83,9 +83,10 @@ def free_document(res: FreeResult, opt: FreeOptions, header: dict) -> dict:
     frames = []
     for fr in res.frames:
         s = fr.get("slot")
-        out = {"frame": fr["frame"], "status": fr["status"]}
+        st = fr["status"]
+        out = {"frame": fr["frame"], **st.fields()}
         best = fr["search"].best
-        R, t = (b.R[s], b.t[s]) if s is not None and fr["status"] != "rejected" and s < len(b.R) else \
+        R, t = (b.R[s], b.t[s]) if s is not None and st.state != "rejected" and s < len(b.R) else \
             ((best.R, best.t) if best is not None else (np.eye(3), np.zeros(3)))
         out["R"], out["t"] = R, t
         if s is not None and s < len(b.R):
@@ -131,9 +132,9 @@ def free_document(res: FreeResult, opt: FreeOptions, header: dict) -> dict:
         if "mirror_delta_chi2" in fr:
             out["mirror_delta_chi2"] = fr["mirror_delta_chi2"]
         frames.append(out)
-    reasons = Counter(f["status"].split(":")[0] for f in frames)
+    reasons = Counter(f["status"].state for f in res.frames)
     ok_res = [np.sum(b.residual_px[_slot_mask(b, f.get("slot"))] ** 2, 1) for f in res.frames
-              if f["status"] == "ok" and f.get("slot") is not None]
+              if f["status"].ok and f.get("slot") is not None]
     rms = float(np.sqrt(np.mean(np.concatenate(ok_res)))) if ok_res else float("nan")
     geo = b.camera.geometry().to_dict()
     doc = {**header, "motion": "free", **geo, "axes": [], "intrinsics": intr, "distortion": dist,
@@ -149,7 +150,7 @@ def free_document(res: FreeResult, opt: FreeOptions, header: dict) -> dict:
                        "frame_intrinsics_sigma": dict(opt.frame_intrinsics)},
            "summary": {"frames": len(frames), "ok": reasons.get("ok", 0), "ambiguous": reasons.get("ambiguous", 0),
                        "rejected": reasons.get("rejected", 0),
-                       "reasons": dict(Counter(f["status"] for f in frames if f["status"] != "ok")),
+                       "reasons": dict(sorted(Counter(f["reason"] for f in frames if "reason" in f).items())),
                        "rms_px": rms, "chi2_reduced": b.fit.reduced_chi2,
                        "adequacy": _adequacy(rms, b.fit.reduced_chi2)},
            "frames": frames}

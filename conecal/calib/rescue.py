@@ -22,11 +22,11 @@ def rescue_frame(frame, geometry, pts, ids, radius, xy, sg, R_log, t_log, opt, s
     rejection stands."""
     found = search_frame(GeometryCamera(geometry), describe_phantom(pts, ids, radius=radius), xy, (R_log, t_log),
                          SearchOptions(min_spheres=opt.min_spheres))
-    start = found.best if found.status == "ok" else _nearest_by_margin(found, pts, R_log, t_log)
+    start = found.best if found.status.ok else _nearest_by_margin(found, pts, R_log, t_log)
     if start is None:
         return failed
     p = fit_frame(frame, geometry, pts, ids, radius, xy, sg, start.R, start.t, opt, screw)
-    if p.status != "ok":
+    if not p.status.ok:
         return failed
     p.found_by = "pattern search (the log's pose was off)"
     return p
@@ -37,7 +37,7 @@ def _nearest_by_margin(found, pts, R_log, t_log, margin: float = 3.0):
     are RMS displacements of the phantom's points (mm); the log must be within
     1/margin of the distance from that candidate to each rival, so it is at
     least (margin - 1) times closer to it than to any other."""
-    if not found.status.startswith("ambiguous") or found.best is None:
+    if found.status.state != "ambiguous" or found.best is None:
         return None
     cands = [found.best] + list(found.alternatives)
 

@@ -22,6 +22,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
+from ..documents.status import ambiguous, rejected
 from ..errors import FitError
 from ..geometry import rotvec_to_matrix
 from ..stats import not_worse
@@ -107,10 +108,10 @@ def calibrate_free(scan, markers: dict, geometry, opt: FreeOptions = FreeOptions
         frames.append({"frame": k, "search": res, "status": res.status})
         if progress:
             progress(n + 1, len(order))
-    usable = [fr for fr in frames if fr["status"] == "ok"]
+    usable = [fr for fr in frames if fr["status"].ok]
     say(f"identified {len(usable)}/{len(frames)} frames from the pattern")
     if len(usable) < 2:
-        reasons = sorted({fr["status"] for fr in frames})
+        reasons = sorted({fr["status"].sentence for fr in frames})
         raise FitError(f"{len(usable)} of {len(frames)} frames identified; a calibration needs 2 or more "
                        f"(first reason: {reasons[0] if reasons else 'no frames'})")
     fams = FAMILIES if opt.distortion == "auto" else (family_named("none"), family_named(opt.distortion))
@@ -128,7 +129,7 @@ def calibrate_free(scan, markers: dict, geometry, opt: FreeOptions = FreeOptions
                                            start=start, max_nfev=100)
         if not _judge(final, usable, obs, opt):
             break
-        usable = [fr for fr in usable if fr["status"] == "ok"]
+        usable = [fr for fr in usable if fr["status"].ok]
         if len(usable) < 2:
             raise FitError("fewer than 2 frames left at the noise floor")
     else:
@@ -220,7 +221,8 @@ def _regather(b: Bundle, usable, dets, shape, radius, opt: FreeOptions):
     for fr in usable:
         if fr not in keep:
             fr["slot"] = None
-            fr["status"] = f"rejected: {len(fr['pairs'][0])} markers within {gate:.2f} px of the bundle's prediction"
+            fr["status"] = rejected("off_prediction",
+                                    f"{len(fr['pairs'][0])} markers within {gate:.2f} px of the bundle's prediction")
     obs, _ = _observations(keep, dets)
     return obs, keep
 
@@ -238,9 +240,9 @@ def _judge(b: Bundle, usable, obs: Observations, opt: FreeOptions) -> bool:
         fr["slot"] = s
         if per[s] > limit:
             fr["slot"] = None
-            fr["status"] = (f"rejected: residual {per[s]:.3f} px RMS, above {limit:.3f} px "
-                            f"({opt.floor_factor:g}x the scan's median frame RMS {pooled:.3f} px"
-                            f"{', capped by --max-rms' if limit == opt.max_rms_px else ''})")
+            fr["status"] = rejected("residual", f"residual {per[s]:.3f} px RMS, above {limit:.3f} px "
+                                    f"({opt.floor_factor:g}x the scan's median frame RMS {pooled:.3f} px"
+                                    f"{', capped by --max-rms' if limit == opt.max_rms_px else ''})")
             dropped = True
     return dropped
 
@@ -254,7 +256,7 @@ def _mirrors(b: Bundle, usable, obs: Observations, shape, radius, opt: FreeOptio
         return
     pooled = float(np.sqrt(np.mean(np.sum(b.residual_px ** 2, 1)) / 2))
     for s, fr in enumerate(usable):
-        if fr["status"] != "ok":
+        if not fr["status"].ok:
             continue
         cam = b.frame_camera(s)
         sel = obs.slot == s
@@ -290,8 +292,8 @@ def _mirrors(b: Bundle, usable, obs: Observations, shape, radius, opt: FreeOptio
             fr["mirror_spread_rad"] = unit * ang / 2
             continue
         if chi2 - chi1 < opt.mirror_chi2:
-            fr["status"] = (f"ambiguous: the mirror pose (normal turned {np.degrees(ang):.1f} deg about the line of "
-                            f"sight) fits within chi2 {chi2 - chi1:.1f} of this one")
+            fr["status"] = ambiguous("mirror_pose", f"the mirror pose (normal turned {np.degrees(ang):.1f} deg about "
+                                     f"the line of sight) fits within chi2 {chi2 - chi1:.1f} of this one")
 
 
 def _rotation_sigma(b: Bundle, slot: int, axis: np.ndarray) -> float:

@@ -19,6 +19,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from ..documents.status import OK, Status, ambiguous, rejected
 from ..geometry import matrix_to_rotvec
 from .camera import Camera
 from .candidate import Candidate, assign, refine_pose
@@ -29,7 +30,7 @@ from .vote import voted_candidates
 
 @dataclass
 class SearchResult:
-    status: str                # ok | ambiguous: ... | rejected: ...
+    status: Status
     best: Candidate | None = None
     alternatives: list = field(default_factory=list)
     convention: str = ""       # a phantom symmetry resolved by convention
@@ -130,7 +131,7 @@ def search_frame(cam: Camera, shape: PhantomShape, xy: np.ndarray, guess=None,
     """Identify the phantom's spheres among detections ``xy`` (n, 2) px of one
     frame and find a first pose; ``guess``: (R, t) lab or None."""
     if len(xy) < opt.min_spheres:
-        return SearchResult(f"rejected: {len(xy)} markers usable, fewer than {opt.min_spheres}")
+        return SearchResult(rejected("few_markers", f"{len(xy)} markers usable, fewer than {opt.min_spheres}"))
     raw = planar_candidates(cam, shape, xy) if shape.lattice is not None else []
     if not raw:
         raw = voted_candidates(cam, shape, xy, guess, opt.n_orientations)
@@ -147,7 +148,7 @@ def search_frame(cam: Camera, shape: PhantomShape, xy: np.ndarray, guess=None,
         cands = _tighten(cam, shape, xy, cands, opt.gate_floor_px)
     cands = [c for c in cands if len(c.sph) >= opt.min_spheres and np.isfinite(c.rms_px)]
     if not cands:
-        return SearchResult(f"rejected: no pose explains {opt.min_spheres} or more of {len(xy)} markers")
+        return SearchResult(rejected("no_pose", f"no pose explains {opt.min_spheres} or more of {len(xy)} markers"))
     # most spheres explained, then the lowest residual
     cands.sort(key=lambda c: (-c.score, c.rms_px))
     best = cands[0]
@@ -173,10 +174,10 @@ def search_frame(cam: Camera, shape: PhantomShape, xy: np.ndarray, guess=None,
             best, rivals = agree[0], []
     if rivals:
         what = ", ".join(f"{len(c.sph)} spheres at {c.rms_px:.2f} px" for c in rivals[:3])
-        return SearchResult(f"ambiguous: {len(rivals) + 1} identifications fit about equally "
-                            f"(best {len(best.sph)} spheres at {best.rms_px:.2f} px; also {what})",
+        return SearchResult(ambiguous("ambiguous_identity", f"{len(rivals) + 1} identifications fit about equally "
+                                      f"(best {len(best.sph)} spheres at {best.rms_px:.2f} px; also {what})"),
                             best, rivals, convention)
-    return SearchResult("ok", best, [], convention)
+    return SearchResult(OK, best, [], convention)
 
 
 def _by_convention(twins: list, shape: PhantomShape, guess, opt: SearchOptions) -> Candidate:

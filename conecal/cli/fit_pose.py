@@ -8,6 +8,7 @@ import numpy as np
 from .. import __version__
 from ..binding import check_scan
 from ..calib.rescue import rescue_frame
+from ..documents.status import reason_lines
 from ..errors import FitError
 from ..fit.markers import read_markers
 from ..fit.pose import PoseOptions, fit_helix, fit_poses, placement_errors
@@ -117,9 +118,9 @@ def command(scan, markers, geometry, output, max_rms, prior_mm, prior_deg, initi
     with progress_bar("fit-pose") as prog:
         poses, R_log, t_log = fit_poses(s, mdoc, g, opt, initial=initial, use_flagged=use_flagged, progress=prog,
                                         frames=None if subset is None else set(subset), rescue=rescue_frame)
-    ok = [p for p in poses if p.status == "ok"]
+    ok = [p for p in poses if p.status.ok]
     if not ok and subset is None:
-        raise FitError(f"no frame could be fitted; first reason: {poses[0].status if poses else 'no frames'}")
+        raise FitError(f"no frame could be fitted; first reason: {poses[0].status.sentence if poses else 'no frames'}")
     bundle = None
     if refine_geometry:
         from ..fit.markers import BIASING_FLAGS
@@ -127,7 +128,7 @@ def command(scan, markers, geometry, output, max_rms, prior_mm, prior_deg, initi
                     for f in mdoc["frames"]}
         g, bres, poses = refine_geometry_fn(g, poses, s.phantom.positions, s.phantom.ids, s.config.markers.diameter / 2,
                                             by_frame, opt.gate_px)
-        ok = [p for p in poses if p.status == "ok"]
+        ok = [p for p in poses if p.status.ok]
         bundle = {"parameters": {n: {"value": float(bres.value(n)), "sigma": float(bres.sigma[i]), "unit": "mm"}
                                  for i, n in enumerate(bres.names[:3])},
                   "held": ["source_x", "source_y", "source_z", "detector_rx", "detector_ry", "detector_rz"],
@@ -135,8 +136,8 @@ def command(scan, markers, geometry, output, max_rms, prior_mm, prior_deg, initi
     place = placement_errors(poses, R_log, t_log)
     frames = []
     for p, pe in zip(poses, place["frames"]):
-        fr = {"frame": p.frame, "R": p.R, "t": p.t, "status": p.status}
-        if p.status == "ok":
+        fr = {"frame": p.frame, "R": p.R, "t": p.t, **p.status.fields()}
+        if p.status.ok:
             fr.update({"sigma_rotation_deg": p.sigma_rotation_deg, "sigma_translation_mm": p.sigma_translation_mm,
                        "rms_px": p.rms_px, "n_spheres": p.n_spheres, "sphere_ids": p.ids, "placement_error": pe,
                        "found_by": p.found_by})
@@ -158,6 +159,8 @@ def command(scan, markers, geometry, output, max_rms, prior_mm, prior_deg, initi
     info(f"wrote {output}: {len(ok)}/{len(poses)} frames ok, reprojection RMS {rms_all:.4f} px; "
          f"helix radius {helix['radius_mm']:.3f} mm, pitch {helix['pitch_mm_per_turn']:.3f} mm/turn, "
          f"CAD residual {helix['rms_mm']:.4f} mm RMS")
+    for line in reason_lines(totals["summary"]["reasons"]):
+        info(line)
     if totals["placement"]:
         ps = totals["placement"]
         info(f"robot placement error: offset mean {np.round(ps['offset_mean_mm'], 3).tolist()} mm "

@@ -3,16 +3,16 @@
 from __future__ import annotations
 
 import os
-from collections import Counter
+from pathlib import Path
 
 import numpy as np
-from pathlib import Path
 
 from .. import __version__
 from ..calib.bundle import FAMILIES
 from ..calib.camera import INTRINSIC_UNITS
 from ..calib.document import free_document
 from ..calib.run import FreeOptions, calibrate_free
+from ..documents.status import reason_lines
 from ..errors import InputError
 from ..geometry import ConeGeometry
 from ..jsonio import read_json, rounded, write_json
@@ -69,8 +69,8 @@ def run_free(s, scan, mdoc, markers, geometry, output, max_rms, distortion, fram
     it = doc["intrinsics"]
     info(f"wrote {output}: {sm['ok']}/{sm['frames']} frames ok, {sm['ambiguous']} ambiguous, {sm['rejected']} "
          f"rejected; reprojection RMS {sm['rms_px']:.4f} px")
-    for reason, n in Counter(sm["reasons"]).most_common():
-        info(f"  {n} frame(s): {reason}")
+    for line in reason_lines(sm["reasons"]):
+        info(line)
     ref = doc["phantom_refinement"]
     if ref and ref["chosen"]:
         big = max(ref["spheres"], key=lambda r: float(np.linalg.norm(r["offset_mm"])))

@@ -35,15 +35,17 @@ def _report_poses(console, path, doc) -> None:
     """fit-pose: frames kept and why others were rejected, accuracy, helix, robot placement."""
     from collections import Counter
 
+    from ..documents.status import REASONS, reason_of
+
     import numpy as np
     from rich.table import Table
 
     sm = doc.get("summary", {})
     console.print(f"[bold]{path}[/] — fit-pose on {doc.get('scan', '?')}: {sm.get('ok')}/{sm.get('frames')} frames ok, "
                   f"reprojection RMS {sm.get('rms_px', float('nan')):.4f} px")
-    reasons = Counter(f["status"].split(":", 1)[1].strip().split(" (")[0] for f in doc["frames"] if f["status"] != "ok")
-    for why, n in reasons.most_common():
-        console.print(f"  [yellow]{n} rejected[/]: {why}")
+    reasons = Counter((f["status"].split(":")[0], reason_of(f)) for f in doc["frames"] if f["status"] != "ok")
+    for (state, why), n in reasons.most_common():
+        console.print(f"  [yellow]{n} {state}[/]: {REASONS.get(why, why)}")
     if doc.get("motion") == "free":
         from ..report.free import free_terminal
 

@@ -14,6 +14,7 @@ from pydantic import Field, field_validator, model_validator
 
 from .common import (Axis, ChosenDistortion, Detector, Distortion, Doc, Finite, Intrinsic, Matrix3, MaybeFinite,
                      NonNegative, Parameter, PositiveFloat, ScanFingerprint, Vec3, source_off_detector)
+from .status import REASONS
 
 FrameNumber = Annotated[int, Field(ge=0, description="page index in the projection stack")]
 Sigma3 = Annotated[list[NonNegative | None], Field(min_length=3, max_length=3)]
@@ -115,6 +116,7 @@ class PoseFrame(Doc):
     frame: FrameNumber
     status: Annotated[str, Field(pattern=r"^(ok|ambiguous|rejected)(:|$)")] = Field(
         description="ok, 'ambiguous: <reason>' or 'rejected: <reason>'")
+    reason: str | None = Field(None, description="why a frame is not ok: a key of conecal.documents.status.REASONS")
     R: Matrix3 | None = Field(None, description="rotation, P_lab = R p_phantom + t")
     t: Vec3 | None = Field(None, description="translation, mm")
     sigma_rotation_deg: Sigma3 | None = None
@@ -136,6 +138,11 @@ class PoseFrame(Doc):
             raise ValueError("a frame's own geometry needs both source and detector")
         if self.source is not None:
             source_off_detector(self.source, self.detector)
+        if self.reason is not None:
+            if self.reason not in REASONS:
+                raise ValueError(f"reason: {self.reason!r} is not one of {', '.join(REASONS)}")
+            if self.status == "ok":
+                raise ValueError("an ok frame has no reason")
         if self.status == "ok":
             if self.R is None or self.t is None:
                 raise ValueError("an ok frame needs R and t")
@@ -149,6 +156,9 @@ class PosesSummary(Doc):
     frames: Annotated[int, Field(ge=0)] | None = None
     ok: Annotated[int, Field(ge=0)] | None = None
     rejected: Annotated[int, Field(ge=0)] | None = None
+    ambiguous: Annotated[int, Field(ge=0)] | None = None
+    reasons: dict[str, Annotated[int, Field(ge=0)]] | None = Field(
+        None, description="frames per reason key (conecal.documents.status.REASONS)")
 
 
 class PosesDocument(_HasGeometry):

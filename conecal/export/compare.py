@@ -5,7 +5,7 @@ the detector sees at the lab origin) are moved by each file's own axes
 through a fixed set of readings and projected with each file's geometry;
 the largest difference in px is the verdict, with the parameters that moved
 by more than ``tol_sigma`` of their combined sigma listed. Pose files: each
-frame's status must match, and points filling the field of view around
+frame's status (ok, ambiguous or rejected, and the reason key) must match, and points filling the field of view around
 the holder must project within ``tol_px``.
 """
 
@@ -15,6 +15,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from ..documents.status import reason_of
 from ..geometry import ConeGeometry, RigidTransform
 from ..jsonio import read_json
 from .views import chain_from_doc
@@ -63,7 +64,7 @@ def compare_files(path_a, path_b, tol_px: float = 0.05, tol_sigma: float = 3.0) 
             if k not in fa or k not in fb:
                 lines.append(f"frame {k}: only in {'A' if k in fa else 'B'}")
                 continue
-            if fa[k]["status"] != fb[k]["status"]:
+            if _state(fa[k]) != _state(fb[k]):
                 lines.append(f"frame {k}: status {fa[k]['status']!r} vs {fb[k]['status']!r}")
                 continue
             if fa[k]["status"] != "ok":
@@ -105,3 +106,9 @@ def compare_files(path_a, path_b, tol_px: float = 0.05, tol_sigma: float = 3.0) 
     agree = worst <= tol_px and not moved and not lines
     head = f"largest reprojection difference {worst:.4g} px ({where}); tolerance {tol_px} px"
     return Comparison(worst, where, [head] + moved + lines, agree)
+
+
+def _state(frame: dict) -> tuple:
+    """A poses frame's state and reason key (the detail's numbers may differ)."""
+    ok = frame["status"] == "ok"
+    return (frame["status"].split(":")[0], "" if ok else reason_of(frame))

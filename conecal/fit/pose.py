@@ -26,6 +26,8 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy.optimize import least_squares, linear_sum_assignment
 
+from ..documents import status
+from ..documents.status import OK, Status
 from ..geometry import ConeGeometry, RigidTransform, matrix_to_rotvec, rotvec_to_matrix
 from ..geometry.cone import so3_left_jacobian
 from ..geometry.rotations import skew
@@ -55,7 +57,7 @@ class PoseOptions:
 @dataclass
 class FramePose:
     frame: int
-    status: str
+    status: Status
     R: np.ndarray
     t: np.ndarray
     sigma_rotation_deg: np.ndarray = field(default_factory=lambda: np.full(3, np.nan))
@@ -174,9 +176,9 @@ def fit_frame(frame: int, geometry: ConeGeometry, points: np.ndarray, ids: np.nd
     fit; the hypothesis identifying most spheres wins. Two hypotheses that
     fit about as well with different poses make the frame ambiguous.
     """
-    rejected = FramePose(frame, "", np.asarray(R0), np.asarray(t0))
+    rejected = FramePose(frame, OK, np.asarray(R0), np.asarray(t0))
     if len(det_xy) < opt.min_spheres:
-        rejected.status = f"rejected: {len(det_xy)} markers detected, fewer than {opt.min_spheres}"
+        rejected.status = status.rejected("few_markers", f"{len(det_xy)} markers detected, fewer than {opt.min_spheres}")
         return rejected
     prob = PoseProblem(geometry, points, radius, R0, t0)
     allidx = np.arange(len(points))
@@ -224,18 +226,19 @@ def fit_frame(frame: int, geometry: ConeGeometry, points: np.ndarray, ids: np.nd
         resid = det_xy[c] - prob.predict(x, r)
         hyps.append((len(r), float(np.sqrt(np.mean(resid**2))), x, res, r, c, resid))
     if not hyps:
-        why = "only poses beyond the prior fit" if beyond else "no consistent set of spheres near the initial pose"
-        rejected.status = f"rejected: {why}"
+        rejected.status = (status.rejected("beyond_prior", "only poses beyond the prior fit") if beyond else
+                           status.rejected("no_pose", "no consistent set of spheres near the initial pose"))
         return rejected
     hyps.sort(key=lambda h: (-h[0], h[1]))
     n, rms, x, res, r, c, resid = hyps[0]
     for n2, rms2, x2, *_ in hyps[1:]:
         differs = np.degrees(np.linalg.norm(x2[:3] - x[:3])) > 0.05 or np.linalg.norm(x2[3:] - x[3:]) > 0.05
         if differs and n2 >= 0.8 * n and rms2 <= opt.max_rms_px:
-            rejected.status = f"rejected: ambiguous, two poses within the prior fit {n} and {n2} spheres"
+            rejected.status = status.rejected("ambiguous_identity",
+                                              f"ambiguous, two poses within the prior fit {n} and {n2} spheres")
             return rejected
     if n < max(opt.min_spheres, opt.min_fraction * n_vis):
-        rejected.status = f"rejected: {n} spheres identified of {n_vis} on the detector"
+        rejected.status = status.rejected("few_identified", f"{n} spheres identified of {n_vis} on the detector")
         return rejected
     if screw is not None:
         # A helix is nearly invariant under its own screw: a start off by one
@@ -251,17 +254,17 @@ def fit_frame(frame: int, geometry: ConeGeometry, points: np.ndarray, ids: np.nd
             # as many spheres: the prior decides (the neighbour is a whole step away);
             # more: the prior was wrong, and this pose with it
             if len(rk) > n:
-                rejected.status = (f"rejected: the helix fits better shifted by {k:+d} sphere(s): "
-                                   f"the initial pose is off by more than the prior")
+                rejected.status = status.rejected("screw_shift", f"the helix fits better shifted by {k:+d} sphere(s): "
+                                                  f"the initial pose is off by more than the prior")
                 return rejected
     R, t = prob.transform(x)
     sd = res.sigma
-    out = FramePose(frame, "ok", R, t, np.degrees(sd[:3]), sd[3:], rms, n, [int(ids[i]) for i in r], resid)
+    out = FramePose(frame, OK, R, t, np.degrees(sd[:3]), sd[3:], rms, n, [int(ids[i]) for i in r], resid)
     seen = np.zeros(len(points), bool)
     seen[r] = True
     out.hidden = hidden_behind(geometry, points @ R.T + t, radius, seen, ids)
     if rms > opt.max_rms_px:
-        out.status = f"rejected: reprojection RMS {rms:.3f} px above {opt.max_rms_px} px"
+        out.status = status.rejected("residual", f"reprojection RMS {rms:.3f} px above {opt.max_rms_px} px")
     return out
 
 
@@ -324,7 +327,7 @@ def placement_errors(poses: list[FramePose], R_log: np.ndarray, t_log: np.ndarra
     deg), and its statistics over the ``ok`` frames."""
     per = []
     for p, Rl, tl in zip(poses, R_log, t_log):
-        if p.status != "ok":
+        if not p.status.ok:
             per.append(None)
             continue
         dR = p.R @ Rl.T
@@ -382,11 +385,11 @@ def fit_poses(scan, markers_doc: dict, geometry: ConeGeometry, opt: PoseOptions,
         if initial == "previous" and carry is not None:
             R0, t0 = carry[0] @ R0, carry[0] @ (t0 - carry[2]) + carry[2] + carry[1]
         p = fit_frame(int(frame), geometry, pts, ids, radius, xy, sg, R0, t0, opt, screw)
-        if p.status != "ok" and initial == "previous" and carry is not None:
+        if not p.status.ok and initial == "previous" and carry is not None:
             p = fit_frame(int(frame), geometry, pts, ids, radius, xy, sg, T.R[k], T.t[k], opt, screw)
-        if p.status != "ok" and opt.rescue and rescue is not None and len(xy) >= opt.min_spheres:
+        if not p.status.ok and opt.rescue and rescue is not None and len(xy) >= opt.min_spheres:
             p = rescue(int(frame), geometry, pts, ids, radius, xy, sg, T.R[k], T.t[k], opt, screw, p)
-        if p.status == "ok":
+        if p.status.ok:
             dR = p.R @ T.R[k].T
             carry = (dR, p.t - T.t[k], T.t[k])
         poses.append(p)
@@ -409,7 +412,7 @@ def refine_geometry(geometry: ConeGeometry, poses: list[FramePose], points: np.n
     from .detector_params import NAMES as DNAMES, DetectorParams
 
     dp = DetectorParams(geometry)
-    ok = [p for p in poses if p.status == "ok"]
+    ok = [p for p in poses if p.status.ok]
     obs_f, obs_s, obs_xy, obs_sig = [], [], [], []
     for f, p in enumerate(ok):
         ms = markers_by_frame[p.frame]
@@ -464,13 +467,13 @@ def refine_geometry(geometry: ConeGeometry, poses: list[FramePose], points: np.n
     refined = []
     it = iter(range(nf))
     for p in poses:
-        if p.status != "ok":
+        if not p.status.ok:
             refined.append(p)
             continue
         f = next(it)
         sd = res.sigma[3 + 6 * f:9 + 6 * f]
         sel = obs_f == f
         resid = (residuals(res.x).reshape(-1, 2) * obs_sig[:, None])[sel]
-        refined.append(FramePose(p.frame, "ok", R[f], t[f], np.degrees(sd[:3]), sd[3:],
+        refined.append(FramePose(p.frame, OK, R[f], t[f], np.degrees(sd[:3]), sd[3:],
                                  float(np.sqrt(np.mean(resid**2))), int(sel.sum()), p.ids, resid, p.found_by))
     return g, res, refined

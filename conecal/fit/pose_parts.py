@@ -3,6 +3,8 @@
 
 from __future__ import annotations
 
+from collections import Counter
+
 import numpy as np
 
 from ..parts import cover, read_parts
@@ -23,6 +25,7 @@ def poses_totals(frames: list[dict]) -> dict:
                                             for f in frames]),
             "summary": {"frames": len(frames), "ok": len(ok), "rejected": len(frames) - len(ok),
                         "rejection_rate": (len(frames) - len(ok)) / len(frames) if frames else float("nan"),
+                        "reasons": dict(sorted(Counter(f["reason"] for f in frames if "reason" in f).items())),
                         "rms_px": rms}}
 
 
