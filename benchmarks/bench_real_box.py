@@ -10,6 +10,7 @@ options, prints markers and flags per frame and the time, and writes an
 overlay per frame (green: unflagged, red: flagged) to look at. Frames named
 ``Fiducial_*`` hold 18 balls; ``AC_*`` are a fine dot grid (no balls of the
 declared size) and ``NA_*`` a spine alone: no markers expected there.
+``--raw`` reads the same frames from the recording's 12-bit DICOM files.
 
     python benchmarks/bench_real_box.py <clone>/dataset --work /tmp/box
 """
@@ -33,13 +34,25 @@ import tifffile
 from bench_real_carm import write_free_scan
 
 
-def write_scan(images: Path, scan: Path) -> list[str]:
+def _raw(bmp: Path) -> np.ndarray:
+    """The 12-bit DICOM frame the BMP was made from (same series number)."""
+    import pydicom  # only for --raw; not a conecal dependency
+
+    num = re.search(r"_\.(\d+)\.1\.", bmp.name).group(1)
+    ima = next(bmp.parent.glob(f"*.XA._.{num}.1.*.IMA"))
+    return pydicom.dcmread(ima).pixel_array.astype(np.float32)
+
+
+def write_scan(images: Path, scan: Path, raw: bool = False) -> list[str]:
     files = sorted(f for f in images.glob("*.BMP") if "Invalid" not in f.name)
     if not files:
         raise SystemExit(f"{images}: no .BMP frames")
-    # grey 0 (outside the field) kept finite: 0.5/255
-    stack = np.stack([np.maximum(cv2.imread(str(f), cv2.IMREAD_GRAYSCALE).astype(np.float32), 0.5) / 255.0
-                      for f in files])
+    # grey 0 (outside the field) kept finite: half a grey level
+    if raw:
+        stack = np.stack([np.maximum(_raw(f), 0.5) / 4095.0 for f in files])
+    else:
+        stack = np.stack([np.maximum(cv2.imread(str(f), cv2.IMREAD_GRAYSCALE).astype(np.float32), 0.5) / 255.0
+                          for f in files])
     write_free_scan(scan, stack, [f"{i},{10.0 * i},0,0" for i in range(18)], 0.3, 600.0, 1000.0, 2.5)
     return [re.sub(r"^.*\.\d+_", "", f.stem) for f in files]
 
@@ -48,9 +61,11 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("images", type=Path, help="the recording's 'dataset' folder")
     ap.add_argument("--work", type=Path, default=None, help="keep the scan, markers and overlays here")
+    ap.add_argument("--raw", action="store_true",
+                    help="read the 12-bit DICOM frames (.IMA, needs pydicom) instead of the BMPs")
     a = ap.parse_args(argv)
     work = a.work or Path(tempfile.mkdtemp(prefix="conecal_box_"))
-    names = write_scan(a.images, work / "scan")
+    names = write_scan(a.images, work / "scan", a.raw)
     t0 = time.perf_counter()
     subprocess.run(["conecal", "-q", "detect", str(work / "scan"), "-o", str(work / "markers.json")], check=True)
     print(f"# {len(names)} frames -> {work}; detect {time.perf_counter() - t0:.1f} s")

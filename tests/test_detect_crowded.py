@@ -309,3 +309,42 @@ def test_weak_peaks_chain_into_seeds_only_through_shadows_or_strong_peaks():
     assert _crowd_seeds(chain, kept, 5.0, opt, strong=[(30.0, 0.0)]) == chain
     assert _crowd_seeds(chain, kept, 5.0, opt) == chain                 # every peak strong
     assert _crowd_seeds(chain[1:], kept, 5.0, opt, strong=[]) == []     # weak and away from any shadow
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_a_larger_ball_with_a_flattened_core_is_measured(seed):
+    """A box phantom's big ball (R 17.5 px among 9.5 px ones, beyond the
+    nominal size) whose core an 8-bit display flattens: the background ring
+    of the nominal size lay inside it, nothing was left above it, and the
+    ball was lost (a real recording lost 2 of 162 so); its flat top also
+    reads as a ridge, and as a merged blob it has four times its neighbours'
+    attenuation. Both ways it is now one sphere, and nothing else is found."""
+    rng = np.random.default_rng(seed)
+    n = 320
+    small = [[x + rng.uniform(-0.5, 0.5), y + rng.uniform(-0.5, 0.5), 9.5, 0.1]
+             for x in (50, 160, 270) for y in (50, 160, 270) if (x, y) != (160, 160)]
+    x0, y0 = 160.3 + rng.uniform(-0.5, 0.5), 159.6 + rng.uniform(-0.5, 0.5)
+    img = render((n, n), np.array(small + [[x0, y0, 17.5, 0.1]]), 1.0)
+    img = np.minimum(img, 2.0) + 0.2 + rng.normal(0, 0.005, (n, n))
+    blobs = detect_frame(img.astype(np.float32), DetectOptions(diameter_px=(8.3, 22.2), blur_px=1.0))
+    assert len(blobs) == 9
+    (b,) = [b for b in blobs if np.hypot(b.x - x0, b.y - y0) < 6]
+    assert np.hypot(b.x - x0, b.y - y0) < 0.1 and 16 < b.radius < 19
+
+
+def test_a_round_merged_blob_of_the_neighbours_material_is_one_larger_sphere():
+    """A big ball's flat top can read as a ridge, and its blob is then set
+    aside as merged: round and with its neighbours' attenuation per px of
+    chord, it is one (larger) sphere; twice that (two spheres on one line of
+    sight) or elongated, it is not."""
+    from conecal.detect.crowded import _one_sphere
+    from conecal.detect.frame import Blob
+
+    lone = [Blob(100.0 * k, 0.0, 9.5, 0.01, 0.11, 2.0, 1.02, [], 300.0, 0.1) for k in range(4)]
+
+    def big(mu, aniso):
+        return Blob(150.0, 0.0, 17.7, 0.02, mu, 3.9, aniso, ["clutter"], 66.0, 0.18)
+
+    assert _one_sphere(big(0.072, 1.02), lone)
+    assert not _one_sphere(big(0.22, 1.02), lone)
+    assert not _one_sphere(big(0.072, 1.3), lone)

@@ -312,6 +312,11 @@ def refine(a: np.ndarray, x0: float, y0: float, r0: float, opt: DetectOptions, o
                 float(peak / sig_bg), misfit)
 
 
+# a shadow this round is one sphere's whatever its size: a shadow measured
+# again twice as wide (detect_blobs), a merged blob of the neighbours'
+# material (crowded._one_sphere; a box phantom's big balls read 1.02)
+ROUND_ANISOTROPY = 1.1
+
 # a sphere's candidate peak: on a real C-arm recording lone spheres read 51-61
 # (noise sigmas), the noise on an intensifier's dark blot 10-27; a sphere
 # overlapped by another reads more than alone
@@ -387,6 +392,14 @@ def detect_blobs(a: np.ndarray, opt: DetectOptions):
         others = [o for o in others if not any((o[0] - b.x) ** 2 + (o[1] - b.y) ** 2 < (0.8 * b.radius) ** 2 for b in blobs)] + \
                  [(b.x, b.y, b.radius) for b in blobs]
         b = refine(a, cx, cy, r_guess, opt, others, noise, invalid)
+        if b is None and h > 3 * opt.threshold and 2 * r_guess <= opt.diameter_px[1]:
+            # a strong peak with no shadow of the expected size: the background
+            # ring may lie inside a larger shadow (a big ball whose core an
+            # 8-bit display flattens); once more, twice as wide, kept when it
+            # is that: larger and round (not a blob over a crowd)
+            b = refine(a, cx, cy, 2 * r_guess, opt, others, noise, invalid)
+            if b is not None and (b.radius < 1.3 * r_guess or b.anisotropy > ROUND_ANISOTROPY):
+                b = None
         if b is None and h > 3 * opt.threshold:
             failed.append((cx, cy))   # a strong peak whose background could not be had
         if b is None or b.snr < opt.min_snr:
