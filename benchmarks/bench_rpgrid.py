@@ -21,6 +21,8 @@
     python benchmarks/bench_rpgrid.py --no-fdk --no-sharpness-search --first-seed 200 --uncalibrated-sigma
                                                       # re-measures rpgrid.SIGMA_FACTORS
     python benchmarks/bench_rpgrid.py --no-fdk --no-sharpness-search --interpolation cubic
+    python benchmarks/bench_rpgrid.py --no-fdk --no-sharpness-search --scans 8 --max-table-gb 0.13
+                                                      # pass 2 keeps every other offset
 """
 
 from __future__ import annotations
@@ -162,10 +164,13 @@ def main(argv=None):
                     default="fixed" if rpgrid.RPOptions.freeze_grangeat else "following",
                     help="Grangeat factors fixed at the planes' selection or following the candidate "
                          "(RPOptions.freeze_grangeat)")
+    ap.add_argument("--max-table-gb", type=float, default=rpgrid.RPOptions.max_table_gb,
+                    help="pass 2's table memory (RPOptions.max_table_gb); small values keep every k-th offset")
     ap.add_argument("--uncalibrated-sigma", action="store_true",
                     help="report sigma without rpgrid.SIGMA_FACTORS (the run that measures them: use other seeds)")
     args = ap.parse_args(argv)
-    opt = rpgrid.RPOptions(interpolation=args.interpolation, freeze_grangeat=args.grangeat == "fixed")
+    opt = rpgrid.RPOptions(interpolation=args.interpolation, freeze_grangeat=args.grangeat == "fixed",
+                           max_table_gb=args.max_table_gb)
     if args.uncalibrated_sigma:
         opt = replace(opt, sigma_factors={n: 1.0 for n in NAMES})
     out = Path(args.out)

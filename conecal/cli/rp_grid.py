@@ -61,9 +61,11 @@ def _crop(text):
               help="Smoothing along each pair's fan of planes (deg; 0: off). Use with --planes-per-pair 144.")
 @click.option("--interpolation", type=click.Choice(["spline", "cubic", "linear"]), default="spline", show_default=True,
               help="Table look-ups: cubic B-spline along the offset (spline) or Catmull-Rom (cubic).")
+@click.option("--max-table-gb", type=click.FloatRange(0.05, 1000.0), default=RPOptions.max_table_gb, show_default=True,
+              help="Memory for the second pass's tables (GB); a larger scan keeps every k-th of their smoothed offsets to fit.")
 @click.option("--seed", type=int, default=0, show_default=True, help="Seed of the plane sample.")
 def command(scan, output, ranges, pairs, planes_per_pair, angles, crop, keep_truncated, smooth_px, kernel_order,
-            fan_sigma_deg, interpolation, seed):
+            fan_sigma_deg, interpolation, max_table_gb, seed):
     """Find the detector misalignment of circular SCAN from redundant plane integrals.
 
     No markers: every plane through two source positions is measured by
@@ -94,7 +96,7 @@ def command(scan, output, ranges, pairs, planes_per_pair, angles, crop, keep_tru
     opt = RPOptions(ranges=_ranges(ranges), pairs=pairs, planes_per_pair=planes_per_pair, n_angles=angles,
                     crop=_crop(crop), exclude_truncated=not keep_truncated, smooth_px=smooth_px,
                     kernel_order=int(kernel_order), fan_sigma_deg=fan_sigma_deg,
-                    interpolation=interpolation, seed=seed)
+                    interpolation=interpolation, max_table_gb=max_table_gb, seed=seed)
     s = load_scan(scan)
     with progress_bar("rp-grid") as prog:
         res, prob = run(s, opt, progress=prog)
@@ -104,6 +106,10 @@ def command(scan, output, ranges, pairs, planes_per_pair, angles, crop, keep_tru
     from ..jsonio import write_json
 
     write_json(output, doc)
+    tab = doc["fit"]["tables"]
+    if tab["offset_step_px"] != opt.offset_step_px:
+        info(f"tables with offsets every {tab['offset_step_px']:g} px ({tab['megabytes']:.0f} MB, --max-table-gb "
+             f"{opt.max_table_gb:g})")
     est = ", ".join(f"{n} {x:+.3f}±{sg:.3f}" for n, x, sg in zip(NAMES, res.x, res.sigma))
     info(f"wrote {output}: {est}; cost {res.cost_nominal:.4g} -> {res.cost_final:.4g} "
          f"over {res.planes['used']} planes")

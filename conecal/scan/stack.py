@@ -93,8 +93,11 @@ class ProjectionStack:
 
     def _contiguous_layout(self, tf):
         """(offset, dtype) per page when every page is stored uncompressed and
-        contiguous with the expected shape: such frames are read through a
-        memory map (no copy; the page cache bounds memory). None otherwise."""
+        contiguous with the expected shape: such frames are read with one
+        positioned read each (no TIFF parsing per frame). Not a memory map:
+        every page of a mapped stack that was read counts in the process's
+        resident memory until the kernel drops it, so a pass over a 6 GB
+        stack would look like 6 GB used. None otherwise."""
         size = Path(self.path).stat().st_size
         layout = []
         for page in tf.pages:
@@ -108,10 +111,16 @@ class ProjectionStack:
             if nbytes != dtype.itemsize * self.shape[0] * self.shape[1] or offset + nbytes > size:
                 return None
             layout.append((int(offset), dtype))
-        if not layout:
-            return None
-        self._mm = np.memmap(self.path, dtype=np.uint8, mode="r")
-        return layout
+        return layout or None
+
+    def _fd(self) -> int:
+        # one descriptor per process: os.pread has no shared file offset, but a
+        # forked worker must not close its parent's descriptor
+        held = getattr(self._local, "fd", None)
+        if held is None or held[0] != os.getpid():
+            held = (os.getpid(), os.open(self.path, os.O_RDONLY))
+            self._local.fd = held
+        return held[1]
 
     def _handle(self) -> tifffile.TiffFile:
         # one handle per thread and per process: a forked worker must not
@@ -130,7 +139,10 @@ class ProjectionStack:
         if self._files is None and self._views is not None:
             offset, dtype = self._views[k]
             n = dtype.itemsize * self.shape[0] * self.shape[1]
-            return self._mm[offset:offset + n].view(dtype).reshape(self.shape)
+            buf = os.pread(self._fd(), n, offset)
+            if len(buf) != n:
+                raise InputError(f"{where}: frame {k}: truncated ({len(buf)} of {n} bytes)")
+            return np.frombuffer(buf, dtype).reshape(self.shape)
         try:
             if self._files is not None:
                 img = tifffile.imread(self._files[k])
@@ -151,7 +163,7 @@ class ProjectionStack:
             raise InputError(f"{where}: frame {k}: pixel (row {r}, col {c}) is {a[r, c]}")
 
     def read(self, k: int, check: bool = True) -> np.ndarray:
-        """Frame ``k`` as float32 attenuation (read-only when memory-mapped).
+        """Frame ``k`` as float32 attenuation (read-only when read as stored).
 
         Raises on NaN/inf pixels unless ``check`` is False, for callers that
         check a reduced copy instead (NaN and inf survive averaging) and call
@@ -176,3 +188,7 @@ class ProjectionStack:
         if held is not None and held[0] == os.getpid():
             held[1].close()
         self._local.tf = None
+        fd = getattr(self._local, "fd", None)
+        if fd is not None and fd[0] == os.getpid():
+            os.close(fd[1])
+        self._local.fd = None

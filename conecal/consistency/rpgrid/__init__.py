@@ -20,7 +20,9 @@ How the work is split:
 - each view's table ``d/ds R[g_w](alpha, s)`` is computed once (pixel-driven
   Radon transform, derivative of a Gaussian along s) with the nominal
   cosine weights and kept in float32; frames are read one at a time, so
-  memory is the tables, never the stack;
+  memory is the tables, never the stack, and the tables of pass 2 keep
+  every k-th of their smoothed offsets where they would exceed
+  ``max_table_gb`` (2 GB);
 - planes: random view pairs (at least ``min_separation_deg`` apart), and
   for each pair a fan of planes through both sources (rotating about the
   baseline), kept where they pass within the object's bounding sphere;

@@ -99,6 +99,11 @@ class RPOptions:
     sigma_factors: dict = field(default_factory=lambda: dict(SIGMA_FACTORS))   # see SIGMA_FACTORS
     undetermined_sigma: dict = field(default_factory=lambda: {"shift_u_px": 2.0, "shift_v_px": 2.0, "eta_deg": 0.5,
                                                               "theta_deg": 1.0, "phi_deg": 1.0})
+    # Pass 2's tables (and noise tables) at most this large (GB): a longer
+    # scan or a larger detector keeps every k-th of their smoothed offsets
+    # (pipeline.pass2_keep_every); otherwise they grow as views x detector
+    # width (1440 views of 1024^2: 3.4 GB). benchmarks/bench_rpgrid_scale.py
+    max_table_gb: float = 2.0
     seed: int = 0
 
 

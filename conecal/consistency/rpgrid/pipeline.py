@@ -60,12 +60,24 @@ def pass2_pairs(opt: RPOptions, selection: dict, pair_yield=None) -> int:
     return int(min(np.ceil(want / max(per_pair, 1e-12)), opt.max_pairs_factor * opt.pairs))
 
 
+def pass2_keep_every(n: int, view_bytes: float, opt: RPOptions, noise: bool) -> int:
+    """Every how many offsets pass 2 keeps of tables of ``n`` views,
+    ``view_bytes`` each in full: the least k that holds them, and their
+    noise tables (an eighth of the full size), within ``opt.max_table_gb``."""
+    budget, extra = opt.max_table_gb * 1e9, (0.125 if noise else 0.0)
+    for k in range(1, 9):
+        if n * view_bytes * (1.0 / k + extra) <= budget:
+            return k
+    raise InputError(f"rp-grid: {n} views' tables need {n * view_bytes * (0.125 + extra) / 1e9:.1f} GB even with "
+                     f"every 8th offset kept; raise --max-table-gb (now {opt.max_table_gb:g})")
+
+
 def run(scan, opt: RPOptions, progress=None) -> tuple[RPResult, RPProblem]:
     """rp-grid on a loaded circular scan, in two passes over the stack.
 
     Pass 1: tables of every other view (at most ~180) with the nominal
     cosine weights; grids and a first refinement. Pass 2: tables of every
-    view with the cosine weights of pass 1's geometry (a 2 deg tilt moves
+    view (every k-th offset kept when they would exceed ``opt.max_table_gb``) with the cosine weights of pass 1's geometry (a 2 deg tilt moves
     the principal point by ~20 mm, and the weights' error would mimic a
     tilt) and more view pairs where pass 1 used few of its planes
     (``pass2_pairs``), then the final refinement and sigma. Frames are read one at a
@@ -84,10 +96,10 @@ def run(scan, opt: RPOptions, progress=None) -> tuple[RPResult, RPProblem]:
         for k in idx:
             yield scan.stack.read(frames[k])
 
-    def prog(offset):
+    def prog(offset, span):
         def cb(done, of):
             if progress:
-                progress(offset + done, total)
+                progress(offset + round(done * span / max(of, 1)), total)
         return cb
 
     # the cheap test first: a few views tell whether any plane is usable at all
@@ -99,25 +111,28 @@ def run(scan, opt: RPOptions, progress=None) -> tuple[RPResult, RPProblem]:
     except FitError as exc:
         raise FitError(f"{exc} (seen on {len(probe)} views, before the tables of all {n})") from None
     t0 = time.perf_counter()
-    tab1 = build_tables(images(first), len(first), nominal, opt, progress=prog(0))
+    tab1 = build_tables(images(first), len(first), nominal, opt, progress=prog(0, len(first)))
     prob1 = RPProblem(nominal, T_all[first], tab1, axis, opt)
     t1 = time.perf_counter()
     p_grid, evals = grid_search(prob1, opt, progress=lambda d, o: progress and progress(len(first) + round(10 * d / o), total))
     fit1, _ = refine(prob1, opt, p_grid)
     pair_yield = prob1.separation_yield() if sparse_selection(opt, prob1.last_selection) else None
     opt2 = replace(opt, pairs=pass2_pairs(opt, prob1.last_selection, pair_yield))
+    # the noise tables are an eighth of the tables (NOISE_ANGLE_STEP x NOISE_S_STEP)
+    keep = pass2_keep_every(n, tab1.tables[0].nbytes, opt, opt.noise_weights)
     del prob1, tab1
     t2 = time.perf_counter()
-    tab2 = build_tables(images(range(n)), n, misaligned(nominal, fit1.x), opt, progress=prog(len(first) + 10),
-                        noise=opt.noise_weights)
+    tab2 = build_tables(images(range(n)), n, misaligned(nominal, fit1.x), opt, progress=prog(len(first) + 10, n),
+                        noise=opt.noise_weights, keep_every=keep)
     prob = RPProblem(nominal, T_all, tab2, axis, opt2, pair_yield)
     t3 = time.perf_counter()
     fit, scale = refine(prob, opt2, fit1.x)
     before = fit
     fit, scale, restarts = restart_along_v(prob, opt2, fit, scale)
+    t4 = time.perf_counter()
     res = finish(prob, opt2, fit, scale, p_grid, evals + fit1.nfev + restarts,
-                 {"tables_pass1": t1 - t0, "search_pass1": t2 - t1, "tables_pass2": t3 - t2})
-    res.seconds["refine_pass2"] = time.perf_counter() - t3
+                 {"tables_pass1": t1 - t0, "search_pass1": t2 - t1, "tables_pass2": t3 - t2, "refine_pass2": t4 - t3})
+    res.seconds["sigma"] = time.perf_counter() - t4
     res.seconds["total"] = time.perf_counter() - t0
     res.pass1 = fit1.x
     res.restarted_from = None if fit is before else np.array(before.x)
@@ -163,7 +178,8 @@ def document(res: RPResult, prob: RPProblem, scan, opt: RPOptions) -> dict:
             "planes": {**res.planes, "pairs": prob.n_pairs, "planes_per_pair": opt.planes_per_pair,
                        "pairs_drawn": "by separation yield" if prob.pairs_by_yield else "uniformly",
                        "min_separation_deg": opt.min_separation_deg},
-            "tables": {"views": int(prob.tab.tables.shape[0]), "angles": opt.n_angles,
+            "tables": {"views": int(prob.tab.tables.shape[0]), "max_gb": opt.max_table_gb,
+                       "offset_step_px": prob.tab.ds / min(prob.nominal.pixel_pitch), "angles": opt.n_angles,
                        "offsets": int(prob.tab.tables.shape[2]), "ds_mm": prob.tab.ds, "smooth_px": opt.smooth_px,
                        "kernel_order": opt.kernel_order, "fan_sigma_deg": opt.fan_sigma_deg,
                        "interpolation": opt.interpolation,

@@ -161,9 +161,12 @@ def _holder_hull(img, rect, ratio: float):
 
 
 def build_tables(images, n_views: int, g_weights: ConeGeometry, opt: RPOptions, progress=None,
-                 noise: bool = False) -> ViewTables:
+                 noise: bool = False, keep_every: int = 1) -> ViewTables:
     """Tables for ``n_views`` frames yielded one at a time by ``images``
-    (and their noise variance, with ``noise``)."""
+    (and their noise variance, with ``noise``). ``keep_every``: each view's
+    table is made every ``offset_step_px`` and smoothed there, then every
+    k-th offset kept (a third of the memory at k = 3; the 3 px smoothing
+    leaves nothing a B-spline would miss between samples 2 px apart)."""
     if opt.kernel_order not in KERNEL_REACH:
         raise InputError(f"rp-grid: kernel_order must be 2 or 4, not {opt.kernel_order!r}")
     if not opt.offset_step_px > 0:
@@ -178,12 +181,14 @@ def build_tables(images, n_views: int, g_weights: ConeGeometry, opt: RPOptions, 
     ref = ((cols - 1) / 2, (rows - 1) / 2)
     ds = float(min(pu, pv)) * opt.offset_step_px
     half = np.hypot(max(ref[0] - c0, c1 - ref[0]) * pu, max(ref[1] - r0, r1 - ref[1]) * pv) + 4 * ds
-    n_half = int(np.ceil(half / ds))
+    k = int(keep_every)
+    n_half = int(np.ceil(half / ds / k)) * k   # s = 0 stays a kept sample
     n_s = 2 * n_half + 1
     s0 = -n_half * ds
+    n_kept = len(range(0, n_s, k))
     angles = np.arange(opt.n_angles) * np.pi / opt.n_angles
     t0 = time.perf_counter()
-    tables = np.empty((n_views, opt.n_angles, n_s), np.float32)
+    tables = np.empty((n_views, opt.n_angles, n_kept), np.float32)
     flags = np.empty((n_views, 2 * (c1 - c0 + 1) + 2 * (r1 - r0 + 1)), bool)
     # holder hulls in mm from the tables' origin, padded by repeating the last vertex
     hulls = np.full((n_views, HULL_VERTICES, 2), np.nan)
@@ -191,23 +196,22 @@ def build_tables(images, n_views: int, g_weights: ConeGeometry, opt: RPOptions, 
     if noise:
         n_av = len(angles[::NOISE_ANGLE_STEP])
         variance = np.empty((n_views, n_av, len(range(0, n_s, NOISE_S_STEP))), np.float32)
-    for k, img in enumerate(images):
-        tables[k] = _view_table(img, g_weights, ref, rect, angles, s0, ds, n_s, opt.smooth_px, opt.kernel_order)
-        if opt.interpolation == "spline":
-            tables[k] = spline_filter1d(tables[k], 3, axis=-1, mode="mirror")
+    for v, img in enumerate(images):
+        table = _view_table(img, g_weights, ref, rect, angles, s0, ds, n_s, opt.smooth_px, opt.kernel_order)[:, ::k]
+        tables[v] = spline_filter1d(table, 3, axis=-1, mode="mirror") if opt.interpolation == "spline" else table
         if noise:
-            variance[k] = _view_variance(img, g_weights, ref, rect, angles, s0, ds, n_s, opt.smooth_px,
+            variance[v] = _view_variance(img, g_weights, ref, rect, angles, s0, ds, n_s, opt.smooth_px,
                                              opt.kernel_order)
-        flags[k] = _edge_flags(img, rect, opt.truncation_level)
+        flags[v] = _edge_flags(img, rect, opt.truncation_level)
         if opt.exclude_holder:
             hull = _holder_hull(img, rect, opt.holder_ratio)
             if hull is not None:
                 mm = np.column_stack([(hull[:, 0] + c0 - ref[0]) * pu, (hull[:, 1] + r0 - ref[1]) * pv])
-                hulls[k, :len(mm)] = mm
-                hulls[k, len(mm):] = mm[-1]
+                hulls[v, :len(mm)] = mm
+                hulls[v, len(mm):] = mm[-1]
         if progress:
-            progress(k + 1, n_views)
+            progress(v + 1, n_views)
     if noise:
         variance /= np.median(variance[variance > 0])
-    return ViewTables(tables, s0, ds, ref, rect, flags, time.perf_counter() - t0, hulls, variance,
+    return ViewTables(tables, s0, ds * k, ref, rect, flags, time.perf_counter() - t0, hulls, variance,
                       ds * NOISE_S_STEP)
