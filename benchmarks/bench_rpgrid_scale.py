@@ -24,7 +24,6 @@ import sys
 import time
 from pathlib import Path
 
-import numpy as np
 
 from conecal.geometry.misalignment import NAMES
 from conecal.simulate import write_scan
