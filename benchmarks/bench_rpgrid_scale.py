@@ -24,7 +24,6 @@ import sys
 import time
 from pathlib import Path
 
-
 from conecal.geometry.misalignment import NAMES
 from conecal.simulate import write_scan
 from conecal.simulate.scenarios import circular_scan

@@ -514,3 +514,16 @@ def test_tables_keeping_every_other_smoothed_offset_look_up_nearly_the_same_valu
     scale = np.abs(full).max()
     assert np.median(np.abs(kept - full)) < 2e-3 * scale
     assert np.abs(kept - full).max() < 0.5 * np.abs(coarse - full).max()
+
+
+def test_pass2_keeps_every_kth_offset_only_beyond_the_memory_budget():
+    from conecal.consistency.rpgrid.pipeline import pass2_keep_every
+    from conecal.errors import InputError
+
+    opt = rpgrid.RPOptions()   # 2 GB
+    full = 360 * 1455 * 4       # one 1024^2 view's table, bytes
+    assert pass2_keep_every(720, full / 4, opt, True) == 1      # 720 x 512^2: as before
+    assert pass2_keep_every(1440, full, opt, True) == 2         # 1440 x 1024^2: 3.4 GB in full
+    assert pass2_keep_every(1440, full, opt, False) == 2
+    with pytest.raises(InputError):
+        pass2_keep_every(100000, full, opt, True)

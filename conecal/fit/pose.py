@@ -234,8 +234,8 @@ def fit_frame(frame: int, geometry: ConeGeometry, points: np.ndarray, ids: np.nd
     for n2, rms2, x2, *_ in hyps[1:]:
         differs = np.degrees(np.linalg.norm(x2[:3] - x[:3])) > 0.05 or np.linalg.norm(x2[3:] - x[3:]) > 0.05
         if differs and n2 >= 0.8 * n and rms2 <= opt.max_rms_px:
-            rejected.status = status.rejected("ambiguous_identity",
-                                              f"ambiguous, two poses within the prior fit {n} and {n2} spheres")
+            rejected.status = status.rejected(
+                "ambiguous_identity", f"ambiguous, two poses within the prior fit {n} and {n2} spheres")
             return rejected
     if n < max(opt.min_spheres, opt.min_fraction * n_vis):
         rejected.status = status.rejected("few_identified", f"{n} spheres identified of {n_vis} on the detector")

@@ -22,7 +22,7 @@ from .cost import RPProblem
 from .options import RPOptions
 from .search import grid_search, refine, restart_along_v
 from .sigma import RPResult, finish
-from .tables import build_tables
+from .tables import NOISE_ANGLE_STEP, NOISE_S_STEP, build_tables
 
 
 def check_scan(scan) -> np.ndarray:
@@ -63,8 +63,8 @@ def pass2_pairs(opt: RPOptions, selection: dict, pair_yield=None) -> int:
 def pass2_keep_every(n: int, view_bytes: float, opt: RPOptions, noise: bool) -> int:
     """Every how many offsets pass 2 keeps of tables of ``n`` views,
     ``view_bytes`` each in full: the least k that holds them, and their
-    noise tables (an eighth of the full size), within ``opt.max_table_gb``."""
-    budget, extra = opt.max_table_gb * 1e9, (0.125 if noise else 0.0)
+    noise tables (made coarser, and not thinned), within ``opt.max_table_gb``."""
+    budget, extra = opt.max_table_gb * 1e9, (1.0 / (NOISE_ANGLE_STEP * NOISE_S_STEP) if noise else 0.0)
     for k in range(1, 9):
         if n * view_bytes * (1.0 / k + extra) <= budget:
             return k
@@ -77,9 +77,10 @@ def run(scan, opt: RPOptions, progress=None) -> tuple[RPResult, RPProblem]:
 
     Pass 1: tables of every other view (at most ~180) with the nominal
     cosine weights; grids and a first refinement. Pass 2: tables of every
-    view (every k-th offset kept when they would exceed ``opt.max_table_gb``) with the cosine weights of pass 1's geometry (a 2 deg tilt moves
-    the principal point by ~20 mm, and the weights' error would mimic a
-    tilt) and more view pairs where pass 1 used few of its planes
+    view (every k-th offset kept where they would exceed
+    ``opt.max_table_gb``: ``pass2_keep_every``) with the cosine weights of
+    pass 1's geometry (a 2 deg tilt moves the principal point by ~20 mm,
+    and the weights' error would mimic a tilt) and more view pairs where pass 1 used few of its planes
     (``pass2_pairs``), then the final refinement and sigma. Frames are read one at a
     time in each pass.
     """
@@ -118,7 +119,6 @@ def run(scan, opt: RPOptions, progress=None) -> tuple[RPResult, RPProblem]:
     fit1, _ = refine(prob1, opt, p_grid)
     pair_yield = prob1.separation_yield() if sparse_selection(opt, prob1.last_selection) else None
     opt2 = replace(opt, pairs=pass2_pairs(opt, prob1.last_selection, pair_yield))
-    # the noise tables are an eighth of the tables (NOISE_ANGLE_STEP x NOISE_S_STEP)
     keep = pass2_keep_every(n, tab1.tables[0].nbytes, opt, opt.noise_weights)
     del prob1, tab1
     t2 = time.perf_counter()
