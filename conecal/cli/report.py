@@ -35,7 +35,7 @@ def _report_poses(console, path, doc) -> None:
     """fit-pose: frames kept and why others were rejected, accuracy, helix, robot placement."""
     from collections import Counter
 
-    from ..documents.status import REASONS, reason_of
+    from ..documents.status import REASONS, reason_of, state_of
 
     import numpy as np
     from rich.table import Table
@@ -43,7 +43,7 @@ def _report_poses(console, path, doc) -> None:
     sm = doc.get("summary", {})
     console.print(f"[bold]{path}[/] — fit-pose on {doc.get('scan', '?')}: {sm.get('ok')}/{sm.get('frames')} frames ok, "
                   f"reprojection RMS {sm.get('rms_px', float('nan')):.4f} px")
-    reasons = Counter((f["status"].split(":")[0], reason_of(f)) for f in doc["frames"] if f["status"] != "ok")
+    reasons = Counter((state_of(f), reason_of(f)) for f in doc["frames"] if f["status"] != "ok")
     for (state, why), n in reasons.most_common():
         console.print(f"  [yellow]{n} {state}[/]: {REASONS.get(why, why)}")
     if doc.get("motion") == "free":

@@ -16,7 +16,7 @@ from dataclasses import replace
 
 import numpy as np
 
-from .frame import ROUND_ANISOTROPY, Blob, DetectOptions, detect_blobs, refine
+from .frame import ROUND_ANISOTROPY, Blob, DetectOptions, chord_like, detect_blobs, refine, window_reach
 from .background import fit_profile, structured
 from .overlap import components, disc_misfit, fit_group, group_box, groups_of, joint_sigma, render_box
 from .split import peaks_in, split
@@ -104,7 +104,7 @@ def _crowd_seeds(peaks, kept: list[Blob], R1: float, opt: DetectOptions, strong=
         if any((px - q[0]) ** 2 + (py - q[1]) ** 2 < (0.8 * R1) ** 2 for q in free):
             continue
         free.append((px, py))
-    reach = 1.15 * 2 * R1 + 6 * opt.blur_px + 3
+    reach = window_reach(R1, R1, opt.blur_px)
     pts = free + [(b.x, b.y) for b in kept]
     real = [strong is None or p in strong for p in free] + [True] * (len(pts) - len(free))
     touching, links = set(), []
@@ -273,7 +273,7 @@ def measure_crowded(a: np.ndarray, kept: list[Blob], merged: list[Blob], opt: De
         # nearest touching neighbours, where one edge's profile holds
         for n_i, i in enumerate(g):
             d = np.hypot(s0[:, 0] - s0[n_i, 0], s0[:, 1] - s0[n_i, 1])
-            touch = 1.15 * (s0[:, 2] + s0[n_i, 2]) + 6 * opt.blur_px + 3
+            touch = window_reach(s0[:, 2], s0[n_i, 2], opt.blur_px)
             near = [g[j] for j in np.argsort(d) if j != n_i and d[j] < touch[j]][:_LOCAL_NEIGHBOURS]
             measure([i] + near, only=i)
     out = [b for i, b in enumerate(out) if b is not None and i not in new]
@@ -295,7 +295,7 @@ def _one_sphere(m: Blob, kept: list[Blob]) -> bool:
     ref = [b for b in kept if not b.flags] or kept
     if len(ref) < 2 or "truncated" in m.flags or not np.isfinite(m.sigma) or m.snr <= 0:
         return False   # (a strong peak handed on unmeasured has no shape to judge)
-    if m.profile_misfit > 0.2 + 1.5 / m.radius:
+    if not chord_like(m):
         return False
     near = sorted(ref, key=lambda b: (b.x - m.x) ** 2 + (b.y - m.y) ** 2)[:4]
     R = float(np.median([b.radius for b in near]))

@@ -174,7 +174,7 @@ def refine(a: np.ndarray, x0: float, y0: float, r0: float, opt: DetectOptions, o
     fitted_at = None
     st = None
     for it in range(7):
-        rw = 1.15 * r + 3 * opt.blur_px + 1.5      # centroid window
+        rw = 1.15 * r + 3 * opt.blur_px + 1.5      # centroid window (window_reach: where two meet)
         r_in = rw + 1.0
         # a neighbour's shadow inside the window pulls the centroid and swells
         # the size: the window (a disc about the centre, so a symmetric shadow's
@@ -312,6 +312,19 @@ def refine(a: np.ndarray, x0: float, y0: float, r0: float, opt: DetectOptions, o
                 float(peak / sig_bg), misfit)
 
 
+def window_reach(r1, r2, blur: float):
+    """Centre distance (px) under which two shadows of radii ``r1``, ``r2``
+    have centroid windows that meet (:func:`refine`'s 1.15 R + 3 blur + 1.5
+    each): measured together, flagged overlap."""
+    return 1.15 * (r1 + r2) + 6 * blur + 3
+
+
+def chord_like(b: "Blob") -> bool:
+    """Whether ``b``'s profile is as close to a sphere's chord profile as the
+    clutter test asks of a shadow with structure across it."""
+    return b.profile_misfit <= 0.2 + 1.5 / b.radius
+
+
 # a shadow this round is one sphere's whatever its size: a shadow measured
 # again twice as wide (detect_blobs), a merged blob of the neighbours'
 # material (crowded._one_sphere; a box phantom's big balls read 1.02)
@@ -410,7 +423,7 @@ def detect_blobs(a: np.ndarray, opt: DetectOptions):
     # overlap: centroid windows that meet
     for i, bi in enumerate(blobs):
         for bj in blobs[i + 1:]:
-            reach = 1.15 * (bi.radius + bj.radius) + 6 * opt.blur_px + 3
+            reach = window_reach(bi.radius, bj.radius, opt.blur_px)
             if (bi.x - bj.x) ** 2 + (bi.y - bj.y) ** 2 < reach**2:
                 for b in (bi, bj):
                     if "overlap" not in b.flags:
@@ -429,7 +442,7 @@ def detect_blobs(a: np.ndarray, opt: DetectOptions):
             if b.anisotropy < 3.0:
                 merged.append(b)   # perhaps two or three shadows merged into one blob
             continue  # rods, edges
-        if b.anisotropy > 2.0 or ("clutter" in b.flags and b.profile_misfit > 0.2 + 1.5 / b.radius):
+        if b.anisotropy > 2.0 or ("clutter" in b.flags and not chord_like(b)):
             # not a sphere shadow even allowing for what lies across it (a dense
             # irregular blob, bone, debris) -- or a sphere beside a plate's edge
             # that spoilt its window: detect.crowded tries it with a step removed

@@ -22,6 +22,7 @@ import numpy as np
 
 from ..errors import FitError
 from ..fit.core import Parameter, solve
+from .frame import window_reach
 
 _SS = 3     # samples per pixel and axis
 
@@ -220,7 +221,7 @@ def groups_of(blobs, blur: float) -> list[list[int]]:
     n = len(blobs)
     pairs = [(i, j) for i in range(n) for j in range(i + 1, n)
              if (blobs[i].x - blobs[j].x) ** 2 + (blobs[i].y - blobs[j].y) ** 2
-             < (1.15 * (blobs[i].radius + blobs[j].radius) + 6 * blur + 3) ** 2]
+             < window_reach(blobs[i].radius, blobs[j].radius, blur) ** 2]
     out: dict[int, list[int]] = {}
     for i, c in enumerate(components(n, pairs)):
         out.setdefault(int(c), []).append(i)

@@ -76,6 +76,11 @@ def reason_lines(counts: dict) -> list[str]:
     return [f"  {n} frame(s): {REASONS.get(k, k)} ({k})" for k, n in sorted(counts.items(), key=lambda kv: -kv[1])]
 
 
+def state_of(frame: dict) -> str:
+    """A poses document frame's state: ok, ambiguous or rejected."""
+    return str(frame.get("status", "")).partition(":")[0]
+
+
 def reason_of(frame: dict) -> str:
     """A poses document frame's reason key; for files written before the
     ``reason`` field, the sentence after the state (a person's words, not a key)."""

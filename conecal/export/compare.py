@@ -15,7 +15,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from ..documents.status import reason_of
+from ..documents.status import reason_of, state_of
 from ..geometry import ConeGeometry, RigidTransform
 from ..jsonio import read_json
 from .views import chain_from_doc
@@ -110,5 +110,4 @@ def compare_files(path_a, path_b, tol_px: float = 0.05, tol_sigma: float = 3.0) 
 
 def _state(frame: dict) -> tuple:
     """A poses frame's state and reason key (the detail's numbers may differ)."""
-    ok = frame["status"] == "ok"
-    return (frame["status"].split(":")[0], "" if ok else reason_of(frame))
+    return (state_of(frame), "" if frame["status"] == "ok" else reason_of(frame))
