@@ -270,7 +270,7 @@ def opencv_case(scan, res, held, by_frame) -> dict:
                                                                          (g.shape[0] - 1) / 2], [0, 0, 1]])
     obj, img, frames = [], [], []
     for f in res.frames:
-        if f["status"] != "ok" or f.get("pairs") is None:
+        if not f["status"].ok or f.get("pairs") is None:
             continue
         d, p = f["pairs"]
         xy = np.array([[m["x"], m["y"]] for m in by_frame[f["frame"]]], float)

@@ -65,8 +65,10 @@ def test_bundle_jacobian_matches_finite_differences(family, frame_intrinsics, po
         xm[i] -= h
         num[:, :, i] = (model(xp)[0] - model(xm)[0]) / (2 * h)
     assert np.abs(J - num).max() < 2e-4 * max(1.0, np.abs(num).max())
-    # the solver's sparse form is the same matrix
-    assert np.allclose(model(x, True, sparse=True)[1].toarray(), J.reshape(-1, x.size))
+    # the solver's sparse form is the same matrix, whitened by sigma, with the priors' rows below
+    Js = model(x, True, sparse=True)[1].toarray()
+    assert np.allclose(Js[:J.size // x.size] * 0.05, J.reshape(-1, x.size))
+    assert np.count_nonzero(Js[J.size // x.size:]) == Js.shape[0] - J.size // x.size   # one entry per prior row
 
 
 def _truncated_grid_frame():

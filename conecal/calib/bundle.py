@@ -260,6 +260,7 @@ def adjust(family: Family, camera: Camera, obs: Observations, points: np.ndarray
     shared_idx = [dist.names.index(n) for n in family.shared] if dist is not None else []
     per_idx = [dist.names.index(n) for n in family.per_frame] if dist is not None else []
     sig = obs.sigma[:, None]
+    inv_sig = 1.0 / obs.sigma[:, None, None]
     bias = np.zeros((N, 2))
 
     def unpack(x):
@@ -310,7 +311,8 @@ def adjust(family: Family, camera: Camera, obs: Observations, points: np.ndarray
         # block only: the Jacobian is built as those two blocks
         AJX = JX if A is None else A @ JX
         JKa = JK if A is None else A @ JK
-        Js = np.zeros((N, 2, i_pose))
+        Jall = np.zeros((N, 2, i_pose + npf))     # the shared columns, then the frame's block
+        Js, Jf = Jall[:, :, :i_pose], Jall[:, :, i_pose:]
         Js[:, :, :3] = JKa
         if family.free_centre:
             Js[:, :, 3:5] = Jc
@@ -320,21 +322,18 @@ def adjust(family: Family, camera: Camera, obs: Observations, points: np.ndarray
             JP = AJX @ Rk[slot]                                               # d m / d point (N, 2, 3)
             for a in range(3):
                 Js[np.arange(N), :, i_pts + 3 * obs.sph + a] = JP[:, :, a]
-        Jf = np.empty((N, 2, npf))
         Jf[:, :, :3] = AJX @ (-skew(Rp) @ so3_left_jacobian(blocks[:, :3])[slot])
         Jf[:, :, 3:6] = AJX
         for j, ci in enumerate(per_idx):
             Jf[:, :, 6 + j] = basis[:, :, ci]
         for j, i in enumerate(fi_idx):
             Jf[:, :, npd + j] = JKa[:, :, i]
-        cols = i_pose + slot * npf
         if sparse:
-            idx = np.concatenate([np.broadcast_to(np.arange(i_pose), (N, i_pose)),
-                                  cols[:, None] + np.arange(npf)], 1)          # (N, i_pose + npf), ascending
-            w = i_pose + npf
-            data = np.concatenate([Js, Jf], 2).reshape(2 * N, w)
-            return m, sp.csr_matrix((data.ravel(), np.repeat(idx, 2, axis=0).ravel(), np.arange(0, 2 * N * w + 1, w)),
-                                    shape=(2 * N, len(x)))
+            # rows whitened by obs.sigma, the priors' rows below them, on the fixed pattern
+            data = (Jall * inv_sig).ravel()
+            return m, sp.csr_matrix((np.concatenate([data, ps * pw]), pattern[0], pattern[1]),
+                                    shape=(2 * N + len(pcol), len(x)))
+        cols = i_pose + slot * npf
         J = np.zeros((N, 2, len(x)))
         J[:, :, :i_pose] = Js
         rows = np.arange(N)
@@ -344,8 +343,6 @@ def adjust(family: Family, camera: Camera, obs: Observations, points: np.ndarray
 
     params = [Parameter(n, v, scale=s, unit=u, undetermined_sigma=np.inf) for n, v, s, u in zip(names, values, scales, units)]
     x = np.array(values, float)
-    if probe:
-        return x, model
     # Gaussian priors, one row each: column, weight (1/sigma), centre
     centre = np.array(detector_centre(shape))
     pcol, pw, p0 = [], [], []
@@ -368,7 +365,14 @@ def adjust(family: Family, camera: Camera, obs: Observations, points: np.ndarray
     if centre_sigma:
         prior([1, 2], 1.0 / centre_sigma, centre)
     pcol, pw, p0 = np.concatenate(pcol), np.concatenate(pw), np.concatenate(p0)
-    prior_sp = sp.csr_matrix((pw, (np.arange(len(pcol)), pcol)), shape=(len(pcol), len(x)))
+    # The Jacobian's sparsity pattern: each measurement row holds the shared
+    # parameters and its own frame's block (ascending columns), then one row
+    # per prior; fixed for the whole fit, so built once.
+    w = i_pose + npf
+    idx = np.concatenate([np.broadcast_to(np.arange(i_pose), (N, i_pose)),
+                          (i_pose + slot * npf)[:, None] + np.arange(npf)], 1)
+    pattern = (np.concatenate([np.repeat(idx, 2, axis=0).ravel(), pcol]),
+               np.concatenate([np.arange(0, 2 * N * w + 1, w), 2 * N * w + np.arange(1, len(pcol) + 1)]))
 
     # Priors weigh against the data at the data's real scatter: where detect's
     # sigma is too small (real images: the model leaves several times it), the
@@ -376,11 +380,11 @@ def adjust(family: Family, camera: Camera, obs: Observations, points: np.ndarray
     # prior is scaled up by the same factor and refitted once (the full fits
     # only; a held-out refit keeps its start's factor).
     ps = start.prior_scale if start is not None else 1.0
+    if probe:
+        return x, model
 
     def prior_r(x):
         return ps * pw * (x[pcol] - p0)
-
-    inv_sig = np.repeat(1.0 / obs.sigma, 2)
 
     def markers_chi2(fit):
         res = model(fit.x)[0] - obs.xy
@@ -407,8 +411,7 @@ def adjust(family: Family, camera: Camera, obs: Observations, points: np.ndarray
             bias[:] = new_bias
         params = [Parameter(p.name, v, scale=p.scale, unit=p.unit, undetermined_sigma=np.inf) for p, v in zip(params, x)]
         fit = solve(params, lambda x: np.concatenate([((model(x)[0] - obs.xy) / sig).ravel(), prior_r(x)]),
-                    lambda x: sp.vstack([sp.diags(inv_sig) @ model(x, True, sparse=True)[1], ps * prior_sp],
-                                        format="csr"),
+                    lambda x: model(x, True, sparse=True)[1],
                     max_nfev=max_nfev, tol=1e-8, large=True, covariance=covariance)
         x = fit.x
         markers_chi2(fit)

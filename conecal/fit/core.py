@@ -296,9 +296,13 @@ def _levenberg_marquardt(fun, jac, x0, scale, max_nfev, tol, lo=None, hi=None):
             break
         while nfev < max_nfev:
             try:
-                step = np.zeros(len(x))
-                m = ~held
-                step[m] = -np.linalg.solve((H + lam * np.diag(d))[np.ix_(m, m)], g[m])
+                A = H + np.diag(lam * d)
+                if held.any():
+                    step = np.zeros(len(x))
+                    m = ~held
+                    step[m] = -np.linalg.solve(A[np.ix_(m, m)], g[m])
+                else:
+                    step = -np.linalg.solve(A, g)
             except np.linalg.LinAlgError:
                 lam *= 10
                 continue
@@ -334,7 +338,9 @@ def _scaled(J, scale):
     bundle adjustment's Jacobian, mostly zeros: only the ``large`` path takes it)."""
     if isinstance(J, np.ndarray):
         return J * scale
-    return sparse.csr_matrix(J @ sparse.diags(scale))
+    J = sparse.csr_matrix(J, copy=True)
+    J.data *= scale[J.indices]          # each stored entry times its column's scale
+    return J
 
 
 def _dense(M):

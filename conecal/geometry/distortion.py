@@ -123,11 +123,16 @@ class Distortion:
         x, y = d[..., 0], d[..., 1]
         if self.model == "radial_tangential":
             r2 = x * x + y * y
-            cols = [np.stack([x * r2, y * r2], -1), np.stack([x * r2 ** 2, y * r2 ** 2], -1),
-                    np.stack([x * r2 ** 3, y * r2 ** 3], -1),
-                    np.stack([r2 + 2 * x * x, 2 * x * y], -1), np.stack([2 * x * y, r2 + 2 * y * y], -1),
-                    np.stack([-y * r2, x * r2], -1)]
-            return np.stack(cols, -1)
+            r4 = r2 * r2
+            xy2 = 2 * x * y
+            B = np.empty(x.shape + (2, 6))     # filled in place: this runs in every bundle step
+            B[..., 0, 0], B[..., 1, 0] = x * r2, y * r2                    # k1
+            B[..., 0, 1], B[..., 1, 1] = x * r4, y * r4                    # k2
+            B[..., 0, 2], B[..., 1, 2] = x * r4 * r2, y * r4 * r2          # k3
+            B[..., 0, 3], B[..., 1, 3] = r2 + 2 * x * x, xy2               # p1
+            B[..., 0, 4], B[..., 1, 4] = xy2, r2 + 2 * y * y               # p2
+            B[..., 0, 5], B[..., 1, 5] = -y * r2, x * r2                   # s
+            return B
         mono = np.stack([x ** i * y ** j for i, j in poly_terms(int(self.degree))], -1)
         z = np.zeros_like(mono)
         return np.stack([np.concatenate([mono, z], -1), np.concatenate([z, mono], -1)], -2)
@@ -141,15 +146,16 @@ class Distortion:
         z = np.zeros_like(x)
         if self.model == "radial_tangential":
             r2 = x * x + y * y
-            cols = []
-            for n in (1, 2, 3):
+            xy2 = 2 * x * y
+            g = np.empty(x.shape + (2, 6, 2))  # (..., component, term, d/dx d/dy)
+            for t, n in enumerate((1, 2, 3)):
                 rn, rm = r2 ** n, n * r2 ** (n - 1)
-                cols.append([[rn + 2 * x * x * rm, 2 * x * y * rm], [2 * x * y * rm, rn + 2 * y * y * rm]])
-            cols.append([[6 * x, 2 * y], [2 * y, 2 * x]])                       # p1
-            cols.append([[2 * y, 2 * x], [2 * x, 6 * y]])                       # p2
-            cols.append([[-2 * x * y, -(r2 + 2 * y * y)], [r2 + 2 * x * x, 2 * x * y]])   # s
-            # cols[term][component][d/dx, d/dy] -> (..., 2 components, n terms, 2 derivatives)
-            g = np.stack([np.stack([np.stack(c[k], -1) for c in cols], -2) for k in range(2)], -3)
+                g[..., 0, t, 0], g[..., 0, t, 1] = rn + 2 * x * x * rm, xy2 * rm
+                g[..., 1, t, 0], g[..., 1, t, 1] = xy2 * rm, rn + 2 * y * y * rm
+            g[..., 0, 3, 0], g[..., 0, 3, 1], g[..., 1, 3, 0], g[..., 1, 3, 1] = 6 * x, 2 * y, 2 * y, 2 * x    # p1
+            g[..., 0, 4, 0], g[..., 0, 4, 1], g[..., 1, 4, 0], g[..., 1, 4, 1] = 2 * y, 2 * x, 2 * x, 6 * y    # p2
+            g[..., 0, 5, 0], g[..., 0, 5, 1] = -xy2, -(r2 + 2 * y * y)                                         # s
+            g[..., 1, 5, 0], g[..., 1, 5, 1] = r2 + 2 * x * x, xy2
             return g / self.radius
         terms = poly_terms(int(self.degree))
         dx = np.stack([i * x ** max(i - 1, 0) * y ** j if i else z for i, j in terms], -1)
