@@ -2,21 +2,15 @@
 latency and backlash are each named, sized, and the residuals fall to the
 noise floor. Also the residual tests' false-alarm control and bad input."""
 
-import importlib.util
 import json
-import sys
-from pathlib import Path
 
 import numpy as np
 import pytest
 from click.testing import CliRunner
 
+from benchmarks import diagnose_cases as bench
 from conecal.cli.main import cli
 
-_spec = importlib.util.spec_from_file_location("bench_diagnose", Path(__file__).parents[1] / "benchmarks" / "bench_diagnose.py")
-bench = importlib.util.module_from_spec(_spec)
-sys.modules["bench_diagnose"] = bench
-_spec.loader.exec_module(bench)
 
 
 @pytest.mark.parametrize("name,spec,key,true", [

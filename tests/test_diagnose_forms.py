@@ -2,18 +2,14 @@
 form-variant generator (benchmarks/formvariants.py): located, described,
 not named."""
 
-import importlib.util
 import json
-from pathlib import Path
 
 import numpy as np
 from click.testing import CliRunner
 
+from benchmarks import formvariants as fv
 from conecal.cli.main import cli
 
-_spec = importlib.util.spec_from_file_location("formvariants", Path(__file__).parents[1] / "benchmarks" / "formvariants.py")
-fv = importlib.util.module_from_spec(_spec)
-_spec.loader.exec_module(fv)
 
 
 def test_an_eccentric_encoder_is_described_not_claimed_as_drift(tmp_path):

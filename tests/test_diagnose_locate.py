@@ -2,23 +2,17 @@
 fit to the noise with a physically possible value, and says when the image
 level cannot be trusted."""
 
-import importlib.util
 import json
-import sys
-from pathlib import Path
 from types import SimpleNamespace
 
 import numpy as np
 import pytest
 
+from benchmarks import diagnose_cases as bench
 from conecal.diagnose.image_select import ImageCandidate, _unphysical, untrusted_values
 from conecal.diagnose.locate import FrameCurves, describe, locate
 from conecal.diagnose.select import score
 
-_spec = importlib.util.spec_from_file_location("bench_diagnose", Path(__file__).parents[1] / "benchmarks" / "bench_diagnose.py")
-bench = importlib.util.module_from_spec(_spec)
-sys.modules.setdefault("bench_diagnose", bench)
-_spec.loader.exec_module(bench)
 
 
 def sweep_recording(n=72, seed=0):
