@@ -160,17 +160,12 @@ def main(argv=None):
     ap.add_argument("--no-fdk", action="store_true")
     ap.add_argument("--interpolation", choices=sorted(rpgrid.LOOKUPS), default=rpgrid.RPOptions.interpolation,
                     help="table look-ups of the refinements (RPOptions.interpolation)")
-    ap.add_argument("--grangeat", choices=("fixed", "following"),
-                    default="fixed" if rpgrid.RPOptions.freeze_grangeat else "following",
-                    help="Grangeat factors fixed at the planes' selection or following the candidate "
-                         "(RPOptions.freeze_grangeat)")
     ap.add_argument("--max-table-gb", type=float, default=rpgrid.RPOptions.max_table_gb,
                     help="pass 2's table memory (RPOptions.max_table_gb); small values keep every k-th offset")
     ap.add_argument("--uncalibrated-sigma", action="store_true",
                     help="report sigma without rpgrid.SIGMA_FACTORS (the run that measures them: use other seeds)")
     args = ap.parse_args(argv)
-    opt = rpgrid.RPOptions(interpolation=args.interpolation, freeze_grangeat=args.grangeat == "fixed",
-                           max_table_gb=args.max_table_gb)
+    opt = rpgrid.RPOptions(interpolation=args.interpolation, max_table_gb=args.max_table_gb)
     if args.uncalibrated_sigma:
         opt = replace(opt, sigma_factors={n: 1.0 for n in NAMES})
     out = Path(args.out)

@@ -52,21 +52,19 @@ class RPProblem(_PlaneSample):
 
     # -- cost, residuals, Jacobian ------------------------------------------------------------------
 
-    def _look(self, f: _Frame, views, m, F=None, dframes=None, variance=False):
+    def _look(self, f: _Frame, views, m, dframes=None, variance=False):
         """Per plane of normals ``m`` seen by ``views``: the Grangeat factor
         times the table value, and with ``variance`` the noise variance of
         that value (F^2 times the noise table; the tables' global scale),
         both from one computation of the lines. With ``dframes`` also their
         derivatives along each parameter: returns (value, J, variance, J of
         the variance), else (value, variance); the variance's parts are None
-        without ``variance``. With ``F`` given (frozen at the selection
-        geometry, as the tables' cosine weights are), only the lines'
-        positions depend on the geometry."""
+        without ``variance``. The Grangeat factor follows the geometry
+        (fixed at the selection geometry it pulled the tilts towards where the
+        planes were chosen: benchmarks/RESULTS.md, tag rpgrid-experiments)."""
         a, b, c, h, alpha, s = self._lines(f, m)
         ca, sa, spp = self._from_principal_point(f, a, b, h, s)
-        frozen = F is not None
-        if not frozen:
-            F = self._grangeat_factor(f, spp)
+        F = self._grangeat_factor(f, spp)
         looks = [(self.lookup(self.tab.tables, views, alpha, s, self.tab.s0, self.tab.ds), F)]
         if variance:
             looks.append((kernels.lookup_cubic(self.tab.variance, views, alpha, s, self.tab.s0, self.tab.var_ds, 1.0),
@@ -77,7 +75,7 @@ class RPProblem(_PlaneSample):
         Js = [np.empty((len(s), len(dframes))) for _ in looks] + [None] * (2 - len(looks))
         for k, df in enumerate(dframes):
             dalpha, dsl = self._line_derivatives(m, a, b, c, h, df)
-            dF = 0.0 if frozen else self._grangeat_derivative(f, df, ca, sa, spp, dalpha, dsl)
+            dF = self._grangeat_derivative(f, df, ca, sa, spp, dalpha, dsl)
             for power, ((T, T_a, T_s), w) in enumerate(looks, start=1):
                 dw = dF if power == 1 else 2 * F * dF
                 Js[power - 1][:, k] = dw * T + w * (T_a * dalpha + T_s * dsl)
@@ -123,16 +121,12 @@ class RPProblem(_PlaneSample):
                               (fq.D - f.D) / step, (fq.pp - f.pp) / step))
         return out
 
-    def _grangeat(self, f: _Frame, m):
-        a, b, _, h, _, s = self._lines(f, m)
-        return self._grangeat_factor(f, self._from_principal_point(f, a, b, h, s)[2])
-
     def _residuals(self, p, arrays: "_Planes", energy=False):
         A = arrays
         f = _frame(misaligned(self.nominal, p), self.tab.ref)
         weighted = self.noise_weighted and not energy
-        a, Va = self._look(f, A.vi, A.mi, F=A.Fi, variance=weighted)
-        b, Vb = self._look(f, A.vj, A.mj, F=A.Fj, variance=weighted)
+        a, Va = self._look(f, A.vi, A.mi, variance=weighted)
+        b, Vb = self._look(f, A.vj, A.mj, variance=weighted)
         out = a.copy()
         out[A.perm] -= b
         if A.fan is not None:
@@ -214,8 +208,8 @@ class RPProblem(_PlaneSample):
         f = _frame(misaligned(self.nominal, p), self.tab.ref)
         dfs = self._dframes(p, f)
         weighted = self.noise_weighted
-        d, J, Vi, JVi = self._look(f, A.vi, A.mi, A.Fi, dfs, variance=weighted)
-        b, Jj, Vj, JVj = self._look(f, A.vj, A.mj, A.Fj, dfs, variance=weighted)
+        d, J, Vi, JVi = self._look(f, A.vi, A.mi, dfs, variance=weighted)
+        b, Jj, Vj, JVj = self._look(f, A.vj, A.mj, dfs, variance=weighted)
         J[A.perm] -= Jj
         # the residuals, in the same operations as _residuals
         d[A.perm] -= b

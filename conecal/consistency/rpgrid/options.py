@@ -65,14 +65,6 @@ class RPOptions:
     holder_ratio: float = 2.5           # a holder is this many times denser than the object
     motion_margin_px: float = 3.0       # lines this close to a truncated stretch or holder are dropped too
     grid_motion_px: tuple = (15.0, 8.0)  # the same margin during the two grid passes
-    # Grangeat factors (D^2 + s^2)/D^2 fixed at the selection geometry
-    # instead of following the candidate. s is measured from the principal
-    # point, which a tilt of 1 deg moves by 10 mm, so fixed factors pull the
-    # tilts towards where the planes were chosen (noiseless plain scan,
-    # tables made 5 deg off in theta: theta -1.02 deg off fixed, -0.15
-    # following; 20-scan benchmark with converged refinements, 1,500 pairs:
-    # 15/20 following against 14/20 fixed).
-    freeze_grangeat: bool = False
     # gradient evaluations allowed to each joint refinement (Newton steps on
     # a numerical Hessian, 11 evaluations each; see refine()); unconverged,
     # the CLI exits 1
@@ -80,10 +72,6 @@ class RPOptions:
     # offsets (px) of v from which the final refinement starts again; the
     # lowest robust cost on one set of planes wins (see restart_along_v)
     v_restarts_px: tuple = (-0.5, -0.25, 0.25, 0.5)
-    # the refinements' Hessian: "numerical" (Newton steps, see refine()) or
-    # "gauss-newton" (J^T J, scipy's trust-region least squares; for
-    # comparison: benchmarks/rpgrid_newton.py)
-    hessian: str = "numerical"
     # the numerical Hessian's difference steps, in Gauss-Newton standard
     # deviations along the Gauss-Newton matrix's eigenvectors (core.solve)
     hessian_step: float = 2.0
@@ -95,7 +83,6 @@ class RPOptions:
     # divide each plane's disagreement by its noise sigma at the lines (see
     # RPProblem.noise_weighted); needs the second pass's noise tables
     noise_weights: bool = True
-    grid_cost: str = "normalised"       # or "ssd"; normalised: sum (a-b)^2 / sum (a^2+b^2)
     sigma_factors: dict = field(default_factory=lambda: dict(SIGMA_FACTORS))   # see SIGMA_FACTORS
     undetermined_sigma: dict = field(default_factory=lambda: {"shift_u_px": 2.0, "shift_v_px": 2.0, "eta_deg": 0.5,
                                                               "theta_deg": 1.0, "phi_deg": 1.0})

@@ -188,7 +188,7 @@ def document(res: RPResult, prob: RPProblem, scan, opt: RPOptions) -> dict:
             "evaluations": res.evaluations,
             "seconds": res.seconds,
             "converged": bool(res.fit.success),
-            "grangeat_factors": "fixed" if opt.freeze_grangeat else "following",
+            "grangeat_factors": "following",
             # a lower minimum found by a restart means the cost has several
             # along v (README "Restarts along v")
             "restarts_along_v": {"offsets_px": list(opt.v_restarts_px),

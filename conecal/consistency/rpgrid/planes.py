@@ -59,8 +59,6 @@ class _Planes(NamedTuple):
     mj: np.ndarray
     perm: np.ndarray        # second-view order -> residual order
     weight: np.ndarray
-    Fi: np.ndarray | None   # frozen Grangeat factors
-    Fj: np.ndarray | None
     fan: object = None      # sparse smoothing along each pair's fan, or None
     fan2: object = None     # its elementwise square (for the noise variance)
 
@@ -298,10 +296,9 @@ class _PlaneSample:
         key_j = self.vj[idx] * 4.0 * self.tab.n_a + (self._lines(f, self.mj[idx])[4] % (2 * np.pi))
         perm = np.argsort(key_j, kind="stable")
         vi, mi, vj, mj = self.vi[idx], self.mi[idx], self.vj[idx][perm], self.mj[idx][perm]
-        Fi, Fj = (self._grangeat(f, mi), self._grangeat(f, mj)) if self.opt.freeze_grangeat else (None, None)
         W = self._fan_matrix(idx) if fan and self.opt.fan_sigma_deg > 0 else None
-        size = np.abs(self._look(f, vi, mi, F=Fi)[0])
-        size[perm] += np.abs(self._look(f, vj, mj, F=Fj)[0])
+        size = np.abs(self._look(f, vi, mi)[0])
+        size[perm] += np.abs(self._look(f, vj, mj)[0])
         size *= 0.5
         # c: a typical signal level, not the median: with truncation most
         # planes may miss the object, and noise-only planes must not set the scale
@@ -311,7 +308,7 @@ class _PlaneSample:
             # noise at the lines and bias the answer (v by 0.3 px with a dense
             # holder at 1e5 photons); the noise sigma weights instead
             weight = np.ones(len(vi))
-        return _Planes(vi, mi, vj, mj, perm, weight, Fi, Fj, W, None if W is None else W.multiply(W).tocsr())
+        return _Planes(vi, mi, vj, mj, perm, weight, W, None if W is None else W.multiply(W).tocsr())
 
     def _fan_matrix(self, idx):
         """Row-normalised Gaussian along each pair's fan over the planes ``idx``

@@ -26,8 +26,10 @@ from ...stats import mad_sigma
 STAGES = (("shift_u_px", "eta_deg"), ("shift_v_px", "theta_deg"), ("theta_deg", "phi_deg"), ("shift_v_px", "theta_deg"))
 
 
-def _grid(prob: RPProblem, p, names, centre_range, steps, subset, normalised=False):
-    """Best point of a grid over ``names`` (others held at ``p``)."""
+def _grid(prob: RPProblem, p, names, centre_range, steps, subset):
+    """Best point of a grid over ``names`` (others held at ``p``), by the
+    normalised cost sum (a-b)^2 / sum (a^2+b^2) (the plain sum of squares
+    lost its benchmark: benchmarks/RESULTS.md, tag rpgrid-experiments)."""
     idx = [NAMES.index(n) for n in names]
     axes = [c + np.arange(-np.floor(w / steps[n] + 1e-9), np.floor(w / steps[n] + 1e-9) + 1) * steps[n]
             for n, (c, w) in zip(names, centre_range)]
@@ -37,11 +39,7 @@ def _grid(prob: RPProblem, p, names, centre_range, steps, subset, normalised=Fal
         q = np.array(p, float)
         q[idx] = combo
         # (no BLAS here: its threads, left spinning, slow the numba look-ups tenfold)
-        if normalised:
-            c = prob.normalised_cost(q, subset)
-        else:
-            r = prob.residuals(q, subset)
-            c = float(np.sum(r * r))
+        c = prob.normalised_cost(q, subset)
         n += 1
         if c < best:
             best, best_q = c, q
@@ -99,7 +97,7 @@ def _grid_passes(prob: RPProblem, opt: RPOptions, p, evals, progress):
                 cr = [(0.0, opt.ranges[n]) for n in names]
             else:
                 cr = [(p[NAMES.index(n)], 6 * opt.grid_steps[n]) for n in names]
-            p, n = _grid(prob, p, names, cr, opt.grid_steps, subset, opt.grid_cost == "normalised")
+            p, n = _grid(prob, p, names, cr, opt.grid_steps, subset)
             evals += n
             if progress:
                 progress(pass_ * len(STAGES) + k + 1, 2 * len(STAGES))
@@ -131,8 +129,7 @@ def _solve(prob: RPProblem, opt: RPOptions, parameters, scale: float, arrays=Non
     from ...fit.core import solve
 
     return solve(parameters, lambda x: prob.residuals(x, arrays) / scale, lambda x: prob.jacobian(x, arrays) / scale,
-                 loss=opt.loss, f_scale=F_SCALE, hessian=opt.hessian, hessian_step=opt.hessian_step,
-                 scale_covariance=opt.hessian == "gauss-newton", **kw)
+                 loss=opt.loss, f_scale=F_SCALE, hessian="numerical", hessian_step=opt.hessian_step, **kw)
 
 
 def refine(prob: RPProblem, opt: RPOptions, p):
