@@ -41,7 +41,7 @@ def _report_poses(console, path, doc) -> None:
     sm = doc.get("summary", {})
     console.print(f"[bold]{path}[/] — fit-pose on {doc.get('scan', '?')}: {sm.get('ok')}/{sm.get('frames')} frames ok, "
                   f"reprojection RMS {sm.get('rms_px', float('nan')):.4f} px")
-    reasons = Counter((state_of(f), reason_of(f)) for f in doc["frames"] if f["status"] != "ok")
+    reasons = Counter((state_of(f), reason_of(f)) for f in doc["frames"] if state_of(f) != "ok")
     for (state, why), n in reasons.most_common():
         console.print(f"  [yellow]{n} {state}[/]: {REASONS.get(why, why)}")
     if doc.get("motion") == "free":

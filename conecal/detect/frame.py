@@ -174,7 +174,7 @@ def refine(a: np.ndarray, x0: float, y0: float, r0: float, opt: DetectOptions, o
     fitted_at = None
     st = None
     for it in range(7):
-        rw = 1.15 * r + 3 * opt.blur_px + 1.5      # centroid window (window_reach: where two meet)
+        rw = window_radius(r, opt.blur_px)
         r_in = rw + 1.0
         # a neighbour's shadow inside the window pulls the centroid and swells
         # the size: the window (a disc about the centre, so a symmetric shadow's
@@ -312,11 +312,16 @@ def refine(a: np.ndarray, x0: float, y0: float, r0: float, opt: DetectOptions, o
                 float(peak / sig_bg), misfit)
 
 
+def window_radius(r, blur: float):
+    """Radius (px) of :func:`refine`'s centroid window about a shadow of
+    radius ``r``: the chord profile, its blur and a pixel's margin."""
+    return 1.15 * r + 3 * blur + 1.5
+
+
 def window_reach(r1, r2, blur: float):
     """Centre distance (px) under which two shadows of radii ``r1``, ``r2``
-    have centroid windows that meet (:func:`refine`'s 1.15 R + 3 blur + 1.5
-    each): measured together, flagged overlap."""
-    return 1.15 * (r1 + r2) + 6 * blur + 3
+    have centroid windows that meet: measured together, flagged overlap."""
+    return window_radius(r1, blur) + window_radius(r2, blur)
 
 
 def chord_like(b: "Blob") -> bool:
