@@ -31,6 +31,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from conecal.detect import DetectOptions, detect_frame  # noqa: E402
 from conecal.detect.noise import noise_correlation, noise_pixel  # noqa: E402
+from conecal.stats import mad_sigma  # noqa: E402
 
 HERE = Path(__file__).parent
 
@@ -100,10 +101,10 @@ def main():
         tot_n = sum(v[0] for v in acc.values())
         tot_m = sum(len(v[1]) for v in acc.values())
         print(f"| {scale:.2f} | all | {tot_n} | {tot_m} ({100 * tot_m / tot_n:.1f} %) | | {false} | |")
-        # std, then the robust std (1.4826 MAD) and how many |pull| > 5 (a
+        # std, then the robust std (normal σ from the MAD) and how many |pull| > 5 (a
         # centre off by more than its sigma can say: a wrong "ok")
         print("pull std / robust / >5 per flag class: " + ", ".join(
-            f"{k} {np.std(v):.2f} / {1.4826 * np.median(np.abs(np.array(v) - np.median(v))):.2f} / "
+            f"{k} {np.std(v):.2f} / {mad_sigma(v):.2f} / "
             f"{int(np.sum(np.abs(v) > 5))} (n={len(v) // 2})" for k, v in sorted(pulls.items())), flush=True)
 
 

@@ -3,8 +3,11 @@
 Reads every module's imports with ``ast`` (module-level and function-level
 alike: a lazy import is still a dependency), resolves relative imports, and
 prints (1) cycles between modules (strongly connected components), not
-counting a package's ``__init__`` re-exporting its own submodules, and
-(2) the graph between the top-level packages, with its cycles.
+counting a package's ``__init__`` re-exporting its own submodules,
+(2) the graph between the top-level packages, with its cycles, and (3) the
+imports that go up the declared layering ``LAYERS`` (a package may import
+only from layers below its own; a package missing from ``LAYERS`` counts as
+a failure too, so a new package must be placed).
 
     python benchmarks/import_graph.py
 """
@@ -16,6 +19,21 @@ import sys
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
+
+# bottom to top; each row may import from the rows above it in this list only
+LAYERS = [
+    ["errors", "stats"],                      # plain values and numbers
+    ["binding", "geometry"],                  # documents' base model; projection geometry
+    ["kinematics"],                           # chains of geometry
+    ["scan"],                                 # the scan contract (YAML, frames)
+    ["documents"],                            # output documents' models
+    ["jsonio"],                               # reading and writing them
+    ["parts"],                                # sharded outputs
+    ["effects", "fit"],                       # effect physics; the least-squares core and fits
+    ["calib", "detect", "consistency", "simulate", "export"],   # stages
+    ["diagnose", "report"],                   # analysis over stages (diagnose simulates; report exports)
+    ["cli"],                                  # thin commands
+]
 
 
 def modules() -> dict[str, Path]:
@@ -102,7 +120,13 @@ def main() -> int:
         print("  " + " <-> ".join(c))
     for k in sorted(pg):
         print(f"  {k} -> {', '.join(sorted(pg[k]))}")
-    return 0
+    layer = {f"conecal.{p}": i for i, row in enumerate(LAYERS) for p in row}
+    up = [(a, b) for a in sorted(pg) for b in sorted(pg[a])
+          if a not in layer or b not in layer or layer[b] >= layer[a]]
+    print(f"imports up or across the layering: {len(up)}")
+    for a, b in up:
+        print(f"  {a} -> {b}")
+    return 1 if mc or pc or up else 0
 
 
 if __name__ == "__main__":
