@@ -169,8 +169,11 @@ def measure_crowded(a: np.ndarray, kept: list[Blob], merged: list[Blob], opt: De
         near = _neighbours(m, [*kept, *merged, *deep, *around], peaks, opt, 1.5 * m.radius + 2, 1.2 * R1)
         found = split(a, m, R1, mu1, opt.blur_px, noise, opt.noise_kappa, near, invalid, peaks)
         if found is None:
-            if _one_sphere(m, kept):
-                singles.append(m)
+            # (a deep blob is kept as measured alone: it is its own single)
+            one = m if _one_sphere(m, kept) else \
+                None if any(m is d for d in deep) else _one_on_structure(a, m, kept, opt, noise, invalid, near, peaks)
+            if one is not None:
+                singles.append(one)
             continue
         sph, on_edge = found
         gone.add(id(m))
@@ -180,8 +183,14 @@ def measure_crowded(a: np.ndarray, kept: list[Blob], merged: list[Blob], opt: De
         parts.append([Blob(float(x), float(y), float(R), 0.0, float(mu), 0.0, 1.0, list(flags), 0.0)
                       for x, y, R, mu in sph])
     kept = [b for b in kept if id(b) not in gone]
-    kept += [m for m in singles if id(m) not in gone and all(np.hypot(m.x - o.x, m.y - o.y) > 0.8 * max(m.radius, o.radius)
-                                                           for o in kept + [p for own in parts for p in own])]
+    split_parts = [p for own in parts for p in own]
+    for m in singles:
+        # (two merged blobs around one sphere give it twice)
+        if id(m) not in gone and all(np.hypot(m.x - o.x, m.y - o.y) > 0.8 * max(m.radius, o.radius)
+                                     for o in kept + split_parts):
+            kept.append(m)
+    # (a seed on a shadow now measured alone is that shadow)
+    seeds = [p for p in seeds if all((p[0] - m.x) ** 2 + (p[1] - m.y) ** 2 > (0.8 * m.radius) ** 2 for m in singles)]
     # two blobs' splits, or a split and a shadow measured alone, may hold the same
     # sphere (one split's own parts may lie closer: shadows nearly on top of each other)
     unique: list = []
@@ -228,6 +237,17 @@ def measure_crowded(a: np.ndarray, kept: list[Blob], merged: list[Blob], opt: De
         # more than its spheres' contrast (the fit then swells a sphere to follow the wall)
         quad = max(c1 - c0, q1 - q0) > _QUADRATIC_SPAN * np.mean(s0[:, 2])
         fit = fit_group(ag, s0, opt.blur_px, noise, others, invalid, quadratic=quad)
+        if fit is None and any(i in trial for i in g):
+            # a seed that is no sphere (it fades to nothing or to a negative contrast
+            # on a wall) sinks the joint fit: the group without one seed, else without any
+            for drop in [[n] for n, i in enumerate(g) if i in trial] + [[n for n, i in enumerate(g) if i in trial]]:
+                keep_n = [n for n in range(len(g)) if n not in drop]
+                fit = fit_group(ag, s0[keep_n], opt.blur_px, noise, others, invalid, quadratic=quad) if keep_n else None
+                if fit is not None or len(drop) > 1:
+                    for n in drop:
+                        writes[g[n]] = (None, False)
+                    g = [g[n] for n in keep_n]
+                    break
         # a member never measured alone must earn its place in the joint fit
         while fit is not None and any(i in trial for i in g):
             drop = _unearned(ag, fit[1], [n for n, i in enumerate(g) if i in trial], fit[0], opt, noise, others,
@@ -238,11 +258,20 @@ def measure_crowded(a: np.ndarray, kept: list[Blob], merged: list[Blob], opt: De
             g = g[:drop] + g[drop + 1:]
             fit = fit_group(ag, np.delete(fit[1], drop, axis=0), opt.blur_px, noise, others, invalid,
                             quadratic=quad) if g else None
-        if fit is not None and not np.all((fit[1][:, 2] > 0.5 * R1) & (fit[1][:, 2] < 2.0 * R1)):
+        while fit is not None and not np.all(sized := (fit[1][:, 2] > 0.5 * R1) & (fit[1][:, 2] < 2.0 * R1)):
             # a member swelled or shrank beyond any sphere of the frame: the joint model
-            # followed something else (a wall), so none of its centres is trusted; the
+            # followed something else (a wall). A seed that did is no sphere (dropped, the
+            # rest fitted again); any other, and none of the centres is trusted: the
             # shadows measured alone stand, the others are not had
-            fit = None
+            bad = [n for n in np.flatnonzero(~sized) if g[n] in trial]
+            if len(bad) < int(np.sum(~sized)):
+                fit = None
+                break
+            for n in bad:
+                writes[g[n]] = (None, False)
+            keep_n = [n for n in range(len(g)) if n not in bad]
+            g = [g[n] for n in keep_n]
+            fit = fit_group(ag, fit[1][keep_n], opt.blur_px, noise, others, invalid, quadratic=quad) if g else None
         if fit is None:
             for i in g:
                 writes[i] = (None, False) if i in new else (replace(blobs[i], flags=sorted(set(blobs[i].flags)
@@ -311,6 +340,22 @@ def _one_sphere(m: Blob, kept: list[Blob]) -> bool:
     same = 0.8 * R <= m.radius <= 1.25 * R and 0.6 <= ratio < 1.4 and m.anisotropy <= _ONE_SPHERE_ANISOTROPY
     mu = m.mu_px / float(np.median([b.mu_px for b in near]))
     return same or (m.anisotropy <= ROUND_ANISOTROPY and 0.5 <= mu < 1.4)
+
+
+def _one_on_structure(a, m: Blob, kept: list[Blob], opt: DetectOptions, noise: float, invalid, near,
+                      peaks) -> Blob | None:
+    """A blob set aside as merged that holds one candidate peak and no split,
+    measured again with the background across an edge beside it removed (a
+    holder's curved wall under a lone sphere leaves a plane's residual that
+    the window's second moments weigh by rho^2: anisotropy 1.5-1.7 on shadows
+    a quadratic background shows round); kept when it is then round, has a
+    chord profile and :func:`_one_sphere`'s size and attenuation. Else None."""
+    if len(peaks_in(m, peaks)) > 1 or "truncated" in m.flags:
+        return None
+    b = _beside_edge(a, replace(m, flags=sorted(set(m.flags) | {"clutter"})), opt, noise, invalid, near)
+    if b.anisotropy > opt.max_anisotropy or not np.isfinite(b.sigma) or not _one_sphere(b, kept):
+        return None
+    return b
 
 
 def _small(g: list, s0: np.ndarray) -> bool:

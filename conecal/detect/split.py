@@ -22,7 +22,7 @@ import cv2
 import numpy as np
 
 from .background import fit_profile, structured
-from .overlap import disc_misfit, fit_group, group_box, group_model, mask_weights, render_box
+from .overlap import background_basis, disc_misfit, fit_group, group_box, group_model, mask_weights, render_box
 
 # the chi-square fall a new sphere must give, as a fraction of its own model
 # energy: a real shadow's is most of it (0.5-1 for overlaps up to 60 %)
@@ -66,8 +66,8 @@ def split(a: np.ndarray, m, R1: float, mu1, blur: float, noise: float, kappa: fl
     start = np.array([[m.x, m.y, m.radius, mu0]])
     for _ in range(2):
         prof = fit_profile(a, start, blur, noise, invalid, mask_out)
-        if prof is None:   # no edge beside it: what disturbed it is its own parts
-            parts = _grow(a, **grow)
+        if prof is None:   # no edge beside it: a curved background (a tube seen along its wall)
+            parts = _grow(a, quadratic=True, **grow)
             return None if parts is None else (parts, False)
         (c0, q0, c1, q1), bg, _ = prof
         clean = a.copy()
@@ -91,23 +91,27 @@ def _plausible(sph: np.ndarray, R1: float, mu1) -> np.ndarray:
     return ok if mu1 is None else ok & (sph[:, 3] > 0.5 * mu1) & (sph[:, 3] < 2.0 * mu1)
 
 
-def _grow(a, m, R1, mu1, mu0, ratio, blur, noise, kappa, mask_out, invalid, keep_inadequate=False):
+def _grow(a, m, R1, mu1, mu0, ratio, blur, noise, kappa, mask_out, invalid, keep_inadequate=False, quadratic=False):
     """One sphere, then one more at a time (see the module docstring): the
     parts (k, 4), or None; with ``keep_inadequate`` (parts, adequate) when
     some were found, even if they do not explain the blob."""
     box = group_box(a.shape, np.array([[m.x, m.y, 1.5 * m.radius + 2, 0.0]]), blur)
     c0, q0, c1, q1 = box
     reach = 1.5 * m.radius + 2
-    fit = fit_group(a, np.array([[m.x, m.y, m.radius, mu0]]), blur, noise, mask_out, invalid, box=box)
+    fit = fit_group(a, np.array([[m.x, m.y, m.radius, mu0]]), blur, noise, mask_out, invalid, box=box, quadratic=quadratic)
     if fit is None:
         return None
     wgt = mask_weights(box, mask_out, blur, invalid)
+    yy, xx = np.mgrid[q0:q1, c0:c1]
     disc = _disc(R1)
-    best = None
+    best, steps = None, []
     while len(fit[1]) < min(_MAX_PARTS, int(np.ceil(ratio)) + 1):
         _, sph, _, bg, chi2, n = fit
         resid = (a[q0:q1, c0:c1] - group_model(box, sph, bg, blur)) * wgt
         score = cv2.filter2D(resid.astype(np.float32), -1, disc, borderType=cv2.BORDER_CONSTANT)
+        # the next part inside the blob: beyond it the residual's peak is a
+        # wall's or a neighbour's, and a part started there wanders off
+        score[(xx - m.x) ** 2 + (yy - m.y) ** 2 > reach**2] = -np.inf
         iy, ix = np.unravel_index(int(np.argmax(score)), score.shape)
         new = np.array([[c0 + ix, q0 + iy, R1, mu0]])
         start = np.vstack([sph, new])
@@ -121,12 +125,17 @@ def _grow(a, m, R1, mu1, mu0, ratio, blur, noise, kappa, mask_out, invalid, keep
             twin[0, 2:] = R1, mu0
             starts.append(twin)
         nxt = None
-        for st in starts:
-            f = fit_group(a, st, blur, noise, mask_out, invalid, box=box)
+        for k, st in enumerate(starts):
+            f = fit_group(a, st, blur, noise, mask_out, invalid, box=box, quadratic=quadratic)
             # a part that wandered out of the blob went to fit something else
             if f is not None and np.all(np.hypot(f[1][:, 0] - m.x, f[1][:, 1] - m.y) <= reach) \
                     and (nxt is None or f[4] < nxt[4]):
                 nxt = f
+            if nxt is None and k == len(starts) - 1 and k < 2 and len(sph) == 1:
+                # both wandered off the one sphere: two started along the blob's axis
+                pair = _axis_pair(a, box, bg, quadratic, wgt, m, R1, mu0)
+                if pair is not None:
+                    starts.append(pair)
         if nxt is None:
             break
         gain = (chi2 - nxt[4]) / kappa
@@ -138,8 +147,16 @@ def _grow(a, m, R1, mu1, mu0, ratio, blur, noise, kappa, mask_out, invalid, keep
             break
         fit = nxt
         best = nxt[1]
+        steps.append(nxt)
     if best is None:
         return None
+    if not np.all(_plausible(best, R1, mu1)):
+        # parts fainter or larger than any of the frame's spheres that soaked up
+        # the background after the last step whose parts are all spheres (a
+        # holder's wall beside a pair: faint discs of 2-3x the radius)
+        ok = [f for f in steps if np.all(_plausible(f[1], R1, mu1))]
+        if ok:
+            fit, best = ok[-1], ok[-1][1]
     # the parts must explain the blob to within twice the pixel noise (a
     # rod or a plate's corner is no sum of spheres; on an independent helix
     # every right split reached chi2/n = 0.9-1.7), or, on a background that
@@ -153,6 +170,32 @@ def _grow(a, m, R1, mu1, mu0, ratio, blur, noise, kappa, mask_out, invalid, keep
     if keep_inadequate:
         return best, adequate
     return best if adequate else None
+
+
+def _axis_pair(a, box, bg, quadratic: bool, wgt, m, R1: float, mu0: float) -> np.ndarray | None:
+    """Two spheres (2, 4) started along blob ``m``'s long axis, from the
+    second moments of what stands above the first fit's background: two equal
+    discs a distance s apart add (s/2)^2 to the variance along their axis
+    only. A start that does not rest on the one sphere fitted first, which a
+    background it cannot follow (a tube's end beside the pair) swells and
+    pulls aside."""
+    c0, q0, c1, q1 = box
+    h, w = q1 - q0, c1 - c0
+    yy, xx = np.mgrid[q0:q1, c0:c1]
+    p = (a[q0:q1, c0:c1] - (background_basis(h, w, quadratic) @ bg).reshape(h, w)) * wgt
+    p = np.where((xx - m.x) ** 2 + (yy - m.y) ** 2 <= (m.radius + R1) ** 2, np.maximum(p, 0.0), 0.0)
+    W = float(p.sum())
+    if W <= 0:
+        return None
+    cx, cy = float((p * xx).sum() / W), float((p * yy).sum() / W)
+    dx, dy = xx - cx, yy - cy
+    cov = np.array([[(p * dx * dx).sum(), (p * dx * dy).sum()], [(p * dx * dy).sum(), (p * dy * dy).sum()]]) / W
+    ev, evec = np.linalg.eigh(cov)
+    d = float(np.sqrt(max(ev[1] - ev[0], 0.0)))
+    if d < 0.5:
+        return None
+    e = evec[:, 1]
+    return np.array([[cx + d * e[0], cy + d * e[1], R1, mu0], [cx - d * e[0], cy - d * e[1], R1, mu0]])
 
 
 def _disc(R: float) -> np.ndarray:
