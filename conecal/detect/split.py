@@ -98,7 +98,8 @@ def _grow(a, m, R1, mu1, mu0, ratio, blur, noise, kappa, mask_out, invalid, keep
     box = group_box(a.shape, np.array([[m.x, m.y, 1.5 * m.radius + 2, 0.0]]), blur)
     c0, q0, c1, q1 = box
     reach = 1.5 * m.radius + 2
-    fit = fit_group(a, np.array([[m.x, m.y, m.radius, mu0]]), blur, noise, mask_out, invalid, box=box, quadratic=quadratic)
+    fit = fit_group(a, np.array([[m.x, m.y, m.radius, mu0]]), blur, noise, mask_out, invalid, box=box,
+                    quadratic=quadratic)
     if fit is None:
         return None
     wgt = mask_weights(box, mask_out, blur, invalid)
@@ -124,18 +125,12 @@ def _grow(a, m, R1, mu1, mu0, ratio, blur, noise, kappa, mask_out, invalid, keep
             twin[0, :2] = 2 * sph[0, :2] - new[0, :2]
             twin[0, 2:] = R1, mu0
             starts.append(twin)
-        nxt = None
-        for k, st in enumerate(starts):
-            f = fit_group(a, st, blur, noise, mask_out, invalid, box=box, quadratic=quadratic)
-            # a part that wandered out of the blob went to fit something else
-            if f is not None and np.all(np.hypot(f[1][:, 0] - m.x, f[1][:, 1] - m.y) <= reach) \
-                    and (nxt is None or f[4] < nxt[4]):
-                nxt = f
-            if nxt is None and k == len(starts) - 1 and k < 2 and len(sph) == 1:
-                # both wandered off the one sphere: two started along the blob's axis
-                pair = _axis_pair(a, box, bg, quadratic, wgt, m, R1, mu0)
-                if pair is not None:
-                    starts.append(pair)
+        nxt = _best_within(a, starts, m, reach, blur, noise, mask_out, invalid, box, quadratic)
+        if nxt is None and len(sph) == 1:
+            # both wandered off the one sphere: two started along the blob's axis
+            pair = _axis_pair(a, box, bg, quadratic, wgt, m, R1, mu0)
+            if pair is not None:
+                nxt = _best_within(a, [pair], m, reach, blur, noise, mask_out, invalid, box, quadratic)
         if nxt is None:
             break
         gain = (chi2 - nxt[4]) / kappa
@@ -170,6 +165,19 @@ def _grow(a, m, R1, mu1, mu0, ratio, blur, noise, kappa, mask_out, invalid, keep
     if keep_inadequate:
         return best, adequate
     return best if adequate else None
+
+
+def _best_within(a, starts, m, reach: float, blur, noise, mask_out, invalid, box, quadratic: bool):
+    """The lowest-chi2 joint fit from ``starts`` whose parts all stay within
+    ``reach`` px of blob ``m`` (a part that wandered out went to fit
+    something else), or None."""
+    best = None
+    for st in starts:
+        f = fit_group(a, st, blur, noise, mask_out, invalid, box=box, quadratic=quadratic)
+        if f is not None and np.all(np.hypot(f[1][:, 0] - m.x, f[1][:, 1] - m.y) <= reach) \
+                and (best is None or f[4] < best[4]):
+            best = f
+    return best
 
 
 def _axis_pair(a, box, bg, quadratic: bool, wgt, m, R1: float, mu0: float) -> np.ndarray | None:
