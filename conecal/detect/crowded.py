@@ -236,17 +236,24 @@ def measure_crowded(a: np.ndarray, kept: list[Blob], merged: list[Blob], opt: De
         # a long chain lies on a holder's curved wall, which a plane under it misfits by
         # more than its spheres' contrast (the fit then swells a sphere to follow the wall)
         quad = max(c1 - c0, q1 - q0) > _QUADRATIC_SPAN * np.mean(s0[:, 2])
-        fit = fit_group(ag, s0, opt.blur_px, noise, others, invalid, quadratic=quad)
+
+        def refit(start, keep_n):
+            return fit_group(ag, start[keep_n], opt.blur_px, noise, others, invalid, quadratic=quad) if keep_n else None
+
+        def dropped(g, gone_n):
+            """``g`` without its members at positions ``gone_n``, written as not had."""
+            for n in gone_n:
+                writes[g[n]] = (None, False)
+            return [i for n, i in enumerate(g) if n not in gone_n]
+
+        fit = refit(s0, list(range(len(g))))
         if fit is None and any(i in trial for i in g):
             # a seed that is no sphere (it fades to nothing or to a negative contrast
             # on a wall) sinks the joint fit: the group without one seed, else without any
             for drop in [[n] for n, i in enumerate(g) if i in trial] + [[n for n, i in enumerate(g) if i in trial]]:
-                keep_n = [n for n in range(len(g)) if n not in drop]
-                fit = fit_group(ag, s0[keep_n], opt.blur_px, noise, others, invalid, quadratic=quad) if keep_n else None
+                fit = refit(s0, [n for n in range(len(g)) if n not in drop])
                 if fit is not None or len(drop) > 1:
-                    for n in drop:
-                        writes[g[n]] = (None, False)
-                    g = [g[n] for n in keep_n]
+                    g = dropped(g, drop)
                     break
         # a member never measured alone must earn its place in the joint fit
         while fit is not None and any(i in trial for i in g):
@@ -254,10 +261,8 @@ def measure_crowded(a: np.ndarray, kept: list[Blob], merged: list[Blob], opt: De
                              invalid, fit[4], R1, mu1, quad)
             if drop is None:
                 break
-            writes[g[drop]] = (None, False)
-            g = g[:drop] + g[drop + 1:]
-            fit = fit_group(ag, np.delete(fit[1], drop, axis=0), opt.blur_px, noise, others, invalid,
-                            quadratic=quad) if g else None
+            fit = refit(fit[1], [n for n in range(len(g)) if n != drop])
+            g = dropped(g, [drop])
         while fit is not None and not np.all(sized := (fit[1][:, 2] > 0.5 * R1) & (fit[1][:, 2] < 2.0 * R1)):
             # a member swelled or shrank beyond any sphere of the frame: the joint model
             # followed something else (a wall). A seed that did is no sphere (dropped, the
@@ -267,11 +272,8 @@ def measure_crowded(a: np.ndarray, kept: list[Blob], merged: list[Blob], opt: De
             if len(bad) < int(np.sum(~sized)):
                 fit = None
                 break
-            for n in bad:
-                writes[g[n]] = (None, False)
-            keep_n = [n for n in range(len(g)) if n not in bad]
-            g = [g[n] for n in keep_n]
-            fit = fit_group(ag, fit[1][keep_n], opt.blur_px, noise, others, invalid, quadratic=quad) if g else None
+            fit = refit(fit[1], [n for n in range(len(g)) if n not in bad])
+            g = dropped(g, bad)
         if fit is None:
             for i in g:
                 writes[i] = (None, False) if i in new else (replace(blobs[i], flags=sorted(set(blobs[i].flags)
