@@ -350,15 +350,17 @@ def test_a_round_merged_blob_of_the_neighbours_material_is_one_larger_sphere():
     assert not _one_sphere(big(0.072, 1.3), lone)
 
 
-def test_a_pair_is_started_along_its_long_axis():
+def test_a_chain_is_started_evenly_along_its_long_axis():
     from conecal.detect.frame import Blob
-    from conecal.detect.split import _axis_pair
-    sph = np.array([[30.0, 27.0, 5.0, 0.05], [36.0, 31.0, 5.0, 0.05]])
-    img = render((60, 64), sph, 1.0) + 0.2
-    m = Blob(33.0, 29.0, 7.0, 0.1, 0.05, 0.5, 1.5, [], 30.0)
-    starts = _axis_pair(img, (0, 0, 64, 60), np.array([0.2, 0.0, 0.0]), False, np.ones((60, 64)), m, 5.0, 0.05)
-    got = sorted(map(tuple, starts[:, :2]))
-    assert np.allclose(got, [(30.0, 27.0), (36.0, 31.0)], atol=0.6), got
+    from conecal.detect.split import _axis_chain
+    for sph in (np.array([[30.0, 27.0, 5.0, 0.05], [36.0, 31.0, 5.0, 0.05]]),
+                np.array([[24.0, 23.0, 5.0, 0.05], [30.0, 27.0, 5.0, 0.05], [36.0, 31.0, 5.0, 0.05]])):
+        img = render((60, 64), sph, 1.0) + 0.2
+        m = Blob(30.0, 27.0, 7.0, 0.1, 0.05, 0.5, 1.5, [], 30.0)
+        starts = _axis_chain(img, (0, 0, 64, 60), np.array([0.2, 0.0, 0.0]), False, np.ones((60, 64)), m, 5.0,
+                             0.05, len(sph))
+        got = sorted(map(tuple, starts[:, :2]))
+        assert np.allclose(got, sorted(map(tuple, sph[:, :2])), atol=0.6), got
 
 
 def test_helix_spheres_on_a_tube_wall_and_a_pair_beside_its_end_are_found_once():

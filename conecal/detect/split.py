@@ -112,7 +112,7 @@ def _grow(a, m, R1, mu1, mu0, ratio, blur, noise, kappa, mask_out, invalid, keep
         score = cv2.filter2D(resid.astype(np.float32), -1, disc, borderType=cv2.BORDER_CONSTANT)
         # the next part inside the blob: beyond it the residual's peak is a
         # wall's or a neighbour's, and a part started there wanders off
-        score[(xx - m.x) ** 2 + (yy - m.y) ** 2 > reach**2] = -np.inf
+        score[~_within(xx, yy, m, reach, sph, R1)] = -np.inf
         iy, ix = np.unravel_index(int(np.argmax(score)), score.shape)
         new = np.array([[c0 + ix, q0 + iy, R1, mu0]])
         start = np.vstack([sph, new])
@@ -125,14 +125,14 @@ def _grow(a, m, R1, mu1, mu0, ratio, blur, noise, kappa, mask_out, invalid, keep
             twin[0, :2] = 2 * sph[0, :2] - new[0, :2]
             twin[0, 2:] = R1, mu0
             starts.append(twin)
-        nxt = _best_within(a, starts, m, reach, blur, noise, mask_out, invalid, box, quadratic)
-        if nxt is None and len(sph) == 1:
-            # both wandered off the one sphere: two started along the blob's axis
-            pair = _axis_pair(a, box, bg, quadratic, wgt, m, R1, mu0)
-            if pair is not None:
-                nxt = _best_within(a, [pair], m, reach, blur, noise, mask_out, invalid, box, quadratic)
+        # (a chain seen along its axis: k started evenly along the blob's long axis,
+        # where a greedy start beside a first sphere swollen over two goes astray)
+        chain = _axis_chain(a, box, bg, quadratic, wgt, m, R1, mu0, len(sph) + 1)
+        nxt = _best_within(a, starts + ([chain] if chain is not None else []), m, reach, R1, blur, noise, mask_out,
+                           invalid, box, quadratic)
         if nxt is None:
             break
+        nxt = _new_last(nxt, sph)
         gain = (chi2 - nxt[4]) / kappa
         energy = float(np.sum((render_box(box, nxt[1][-1:], blur) * wgt / noise) ** 2)) / kappa
         # (two shadows nearly on top of each other share most of their energy
@@ -167,31 +167,64 @@ def _grow(a, m, R1, mu1, mu0, ratio, blur, noise, kappa, mask_out, invalid, keep
     return best if adequate else None
 
 
-def _best_within(a, starts, m, reach: float, blur, noise, mask_out, invalid, box, quadratic: bool):
+def _best_within(a, starts, m, reach: float, R1: float, blur, noise, mask_out, invalid, box, quadratic: bool):
     """The lowest-chi2 joint fit from ``starts`` whose parts all stay within
     ``reach`` px of blob ``m`` (a part that wandered out went to fit
     something else), or None."""
     best = None
     for st in starts:
         f = fit_group(a, st, blur, noise, mask_out, invalid, box=box, quadratic=quadratic)
-        if f is not None and np.all(np.hypot(f[1][:, 0] - m.x, f[1][:, 1] - m.y) <= reach) \
-                and (best is None or f[4] < best[4]):
+        if f is not None and _anchored(f[1], m, reach, R1) and (best is None or f[4] < best[4]):
             best = f
     return best
 
 
-def _axis_pair(a, box, bg, quadratic: bool, wgt, m, R1: float, mu0: float) -> np.ndarray | None:
-    """Two spheres (2, 4) started along blob ``m``'s long axis, from the
-    second moments of what stands above the first fit's background: two equal
-    discs a distance s apart add (s/2)^2 to the variance along their axis
-    only. A start that does not rest on the one sphere fitted first, which a
-    background it cannot follow (a tube's end beside the pair) swells and
-    pulls aside."""
+def _within(xx, yy, m, reach: float, sph: np.ndarray, R1: float) -> np.ndarray:
+    """Where the next part may start: inside the blob's reach, or touching a
+    part already found (a chain seen along a helix's axis runs beyond the
+    one peak it was found by)."""
+    ok = (xx - m.x) ** 2 + (yy - m.y) ** 2 <= reach**2
+    for x, y, R, _ in sph:
+        if R <= 1.6 * R1:
+            ok |= (xx - x) ** 2 + (yy - y) ** 2 <= (R + R1) ** 2
+    return ok
+
+
+def _anchored(sph: np.ndarray, m, reach: float, R1: float) -> bool:
+    """Whether every part lies within ``reach`` of blob ``m`` or touches,
+    through a chain of touching parts of a sphere's size (radius at most
+    1.6 ``R1``), one that does."""
+    d = np.hypot(sph[:, 0] - m.x, sph[:, 1] - m.y)
+    reached = d <= reach
+    gap = np.hypot(sph[:, None, 0] - sph[None, :, 0], sph[:, None, 1] - sph[None, :, 1])
+    r = np.where(sph[:, 2] <= 1.6 * R1, sph[:, 2], -np.inf)
+    touch = gap <= r[:, None] + r[None, :] + 1.0
+    for _ in range(len(sph)):
+        reached = reached | np.any(touch & reached[None, :], axis=1)
+    return bool(np.all(reached))
+
+
+def _new_last(fit, before: np.ndarray):
+    """``fit`` with its parts ordered so that the one farthest from every
+    sphere of ``before`` (the one added) is last."""
+    sph = fit[1]
+    d = np.min(np.hypot(sph[:, None, 0] - before[None, :, 0], sph[:, None, 1] - before[None, :, 1]), axis=1)
+    order = np.r_[np.delete(np.arange(len(sph)), int(np.argmax(d))), int(np.argmax(d))]
+    return (fit[0], sph[order], fit[2][order], *fit[3:])
+
+
+def _axis_chain(a, box, bg, quadratic: bool, wgt, m, R1: float, mu0: float, k: int) -> np.ndarray | None:
+    """``k`` spheres (k, 4) started evenly along blob ``m``'s long axis, from
+    the second moments of what stands above the fit's background ``bg``: k
+    equal discs a distance s apart add s^2 (k^2 - 1) / 12 to the variance
+    along their axis only. A start that does not rest on the spheres fitted
+    so far, which a background they cannot follow (a tube's end beside a
+    pair) or a first sphere swollen over two pulls aside."""
     c0, q0, c1, q1 = box
     h, w = q1 - q0, c1 - c0
     yy, xx = np.mgrid[q0:q1, c0:c1]
     p = (a[q0:q1, c0:c1] - (background_basis(h, w, quadratic) @ bg).reshape(h, w)) * wgt
-    p = np.where((xx - m.x) ** 2 + (yy - m.y) ** 2 <= (m.radius + R1) ** 2, np.maximum(p, 0.0), 0.0)
+    p = np.where((xx - m.x) ** 2 + (yy - m.y) ** 2 <= (m.radius + R1 * k) ** 2, np.maximum(p, 0.0), 0.0)
     W = float(p.sum())
     if W <= 0:
         return None
@@ -199,11 +232,12 @@ def _axis_pair(a, box, bg, quadratic: bool, wgt, m, R1: float, mu0: float) -> np
     dx, dy = xx - cx, yy - cy
     cov = np.array([[(p * dx * dx).sum(), (p * dx * dy).sum()], [(p * dx * dy).sum(), (p * dy * dy).sum()]]) / W
     ev, evec = np.linalg.eigh(cov)
-    d = float(np.sqrt(max(ev[1] - ev[0], 0.0)))
-    if d < 0.5:
+    s = float(np.sqrt(max(12 * (ev[1] - ev[0]) / (k * k - 1), 0.0)))
+    if s < 1.0:
         return None
     e = evec[:, 1]
-    return np.array([[cx + d * e[0], cy + d * e[1], R1, mu0], [cx - d * e[0], cy - d * e[1], R1, mu0]])
+    off = (np.arange(k) - (k - 1) / 2) * s
+    return np.column_stack([cx + off * e[0], cy + off * e[1], np.full(k, R1), np.full(k, mu0)])
 
 
 def _disc(R: float) -> np.ndarray:
