@@ -1,15 +1,17 @@
 """Free-pose C-arm calibration (issue 29): conecal fit-pose vs OpenCV calibrateCamera.
 
-Cases come from ``benchmarks/carm_indep.py`` (or ``--gen carm_gen``), generators written without
-conecal's code (its own intensifier distortion, shadow centroids, noise,
-spurious and missing detections), or, with ``--own``, from conecal's
+Cases come from ``benchmarks/carm_indep.py`` (or ``--gen carm_indep2``,
+``--gen carm_sag``), generators written without conecal's code (their own
+intensifier distortion, shadow centroids, noise, spurious and missing
+detections), or, with ``--own``, from conecal's
 simulator (not independent; for development only). Markers level: every
 case's markers.json holds noisy centres without identities.
 
 Per case: frames ok / ambiguous / rejected, wrong ok (an ok frame whose
 fitted phantom does not lie where the true one lies, sphere for sphere up
 to the phantom's own symmetry), reprojection RMS against the noise floor,
-held-out 3-D points (inside the phantom's volume, off a grid's plane)
+held-out 3-D points (inside the phantom's volume, off a grid's plane;
+carried through the symmetry a frame was labelled by)
 projected through each method's calibration, intrinsics and poses against
 their stated sigma (1-sigma coverage), the distortion claimed where there
 is none, and times. OpenCV gets the same centres with the identities
@@ -152,6 +154,7 @@ def run_case(make, name: str, seed: int, root: Path, frame_intrinsics: tuple = (
     z_frame = []     # per-frame intrinsics against a sagging generator's per-frame truth
     n_ok = n_amb = n_wrong = 0
     z_intr, z_pose, held_err = [], [], []
+    maps = {}    # frame -> map of true phantom coordinates to the labelling conecal gave
     err, err_names, stated = [], [], []   # for the whitened coverage
     for fr, f in zip(doc["frames"], res.frames):
         k = fr["frame"]
@@ -162,7 +165,8 @@ def run_case(make, name: str, seed: int, root: Path, frame_intrinsics: tuple = (
             continue
         n_ok += 1
         Rt, tt = poses[k]
-        if not identity_right(fr, truth["ids_per_frame"][k], scan.phantom):
+        to_ours = maps[k] = identity_map(fr, truth["ids_per_frame"][k], scan.phantom)
+        if to_ours is None:
             n_wrong += 1
             continue
         s = f["slot"]
@@ -171,7 +175,9 @@ def run_case(make, name: str, seed: int, root: Path, frame_intrinsics: tuple = (
             z_frame.append([(fr["intrinsics"][n]["value"] - v) / fr["intrinsics"][n]["sigma"]
                             for n, v in zip(("sdd", "c0", "r0"), tv)])
         P, Q = held[k]
-        pred = b.predict(P, np.full(len(P), s))
+        # (labelled by a symmetry of the phantom, the pose is the symmetric one: the
+        # held-out points, given in the true phantom frame, are carried along)
+        pred = b.predict(to_ours(P), np.full(len(P), s))
         held_err.append(np.sum((pred - Q) ** 2, 1))
         rot_err = np.degrees(matrix_to_rotvec(np.array(fr["R"]) @ Rt.T))
         if np.linalg.norm(rot_err) < 5:   # not relabelled by a symmetry
@@ -191,7 +197,7 @@ def run_case(make, name: str, seed: int, root: Path, frame_intrinsics: tuple = (
     ok_rms = doc["summary"]["rms_px"] / np.sqrt(2)
     # OpenCV on the same identified centres
     by_frame = {int(f["frame"]): f["markers"] for f in mdoc["frames"]}
-    cvr = opencv_case(scan, res, held, by_frame)
+    cvr = opencv_case(scan, res, held, by_frame, maps)
     dist = doc["distortion"]
     return {"case": name, "seed": seed, "frames": len(doc["frames"]), "ok": n_ok, "ambiguous": n_amb,
             "wrong_ok": n_wrong, "rms_over_floor": ok_rms / sigma,
@@ -242,16 +248,17 @@ def _xy(mdoc, frame):
     return np.array([[m["x"], m["y"]] for m in f["markers"]], float)
 
 
-def identity_right(fr: dict, true_ids: list, phantom) -> bool:
-    """Whether the ids given to each detection equal the true ones up to a
-    symmetry of the phantom: a rigid map must carry the spheres conecal named
-    onto the ones that were there (0.05 mm)."""
+def identity_map(fr: dict, true_ids: list, phantom):
+    """The rigid map carrying the spheres conecal named onto the ones that
+    were there, as a function of true phantom coordinates (n, 3) mm to
+    conecal's labelling's, when it holds within 0.05 mm (the ids are right up
+    to a symmetry of the phantom); else None."""
     pos = dict(zip(phantom.ids.tolist(), phantom.positions))
     est, true = [], []
     for det, sid in fr["matched"]:
         tid = true_ids[det]
         if tid is None:
-            return False        # a spurious detection taken for a sphere
+            return None        # a spurious detection taken for a sphere
         est.append(pos[sid])
         true.append(pos[int(tid)])
     A, B = np.array(est), np.array(true)
@@ -259,11 +266,21 @@ def identity_right(fr: dict, true_ids: list, phantom) -> bool:
     U, _, Vt = np.linalg.svd(a.T @ b)
     D = np.diag([1, 1, np.sign(np.linalg.det(U @ Vt))])
     R = (U @ D @ Vt).T
-    return float(np.abs(a @ R.T - b).max()) < 0.05
+    if float(np.abs(a @ R.T - b).max()) >= 0.05:
+        return None
+    return lambda H: (np.asarray(H) - B.mean(0)) @ R + A.mean(0)
 
 
-def opencv_case(scan, res, held, by_frame) -> dict:
-    """cv2.calibrateCamera (Zhang + Brown k1, k2, p1, p2, k3) on conecal's identified centres."""
+def identity_right(fr: dict, true_ids: list, phantom) -> bool:
+    """Whether the ids given to each detection equal the true ones up to a
+    symmetry of the phantom: a rigid map must carry the spheres conecal named
+    onto the ones that were there (0.05 mm)."""
+    return identity_map(fr, true_ids, phantom) is not None
+
+
+def opencv_case(scan, res, held, by_frame, maps: dict) -> dict:
+    """cv2.calibrateCamera (Zhang + Brown k1, k2, p1, p2, k3) on conecal's identified centres;
+    ``maps``: frame -> its identity_map (held-out points of frames with a wrong one are not scored)."""
     g = scan.nominal_geometry()
     cam0 = res.camera
     K0 = np.array([[g.sdd / g.pixel_pitch[0], 0, (g.shape[1] - 1) / 2], [0, g.sdd / g.pixel_pitch[1],
@@ -284,8 +301,10 @@ def opencv_case(scan, res, held, by_frame) -> dict:
     t_cv = best_of(3, lambda: cv2.calibrateCamera(obj, img, tuple(g.shape[::-1]), K0.copy(), None, flags=flags))
     errs = []
     for k, rv, tv in zip(frames, rvecs, tvecs):
+        if maps.get(k) is None:
+            continue
         P, Q = held[k]
-        q, _ = cv2.projectPoints(P.astype(np.float64), rv, tv, K, dist)
+        q, _ = cv2.projectPoints(maps[k](P).astype(np.float64), rv, tv, K, dist)
         errs.append(np.sum((q.reshape(-1, 2) - Q) ** 2, 1))
     return {"cv_heldout_rms_px": float(np.sqrt(np.mean(np.concatenate(errs)))), "cv_fit_rms_px": float(rms),
             "time_opencv_s": t_cv, "cam_sdd": cam0.sdd}
@@ -296,7 +315,7 @@ def main(argv=None) -> int:
     ap.add_argument("--cases", nargs="*", default=None)
     ap.add_argument("--seeds", nargs="*", type=int, default=[1, 2])
     ap.add_argument("--own", action="store_true", help="conecal's own simulator (not independent)")
-    ap.add_argument("--gen", default="carm_indep", help="generator module in benchmarks/ (carm_indep, carm_gen)")
+    ap.add_argument("--gen", default="carm_indep", help="generator module in benchmarks/ (carm_indep, carm_indep2, carm_sag)")
     ap.add_argument("--json", default=None, help="also write all rows here")
     ap.add_argument("--frame-intrinsics", default="", help="e.g. sdd,c0,r0: freed per frame (prior sigma 5 mm / 5 px)")
     ap.add_argument("--cad-error", type=float, default=0.0,

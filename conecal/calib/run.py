@@ -32,6 +32,7 @@ from .choose import choose_family, choose_refinement, n_params, paired_heldout
 from .phantom import describe_phantom
 from .candidate import assign, refine_pose
 from .search import SearchOptions, search_frame
+from .second_look import second_look
 
 
 @dataclass(frozen=True)
@@ -115,6 +116,31 @@ def calibrate_free(scan, markers: dict, geometry, opt: FreeOptions = FreeOptions
         raise FitError(f"{len(usable)} of {len(frames)} frames identified; a calibration needs 2 or more "
                        f"(first reason: {reasons[0] if reasons else 'no frames'})")
     fams = FAMILIES if opt.distortion == "auto" else (family_named("none"), family_named(opt.distortion))
+    for look in range(2):
+        final, fits, choice, refinement, pinhole, usable, obs = _solve(fams, cam, usable, dets, shape, radius, opt)
+        if look:
+            break
+        # frames the search left ambiguous or got wrong, and frames that leave
+        # markers unexplained, searched again with the calibrated camera; the
+        # bundle is solved again when an identification changed
+        won, lost = second_look(final, [fr for fr in frames if fr not in usable], usable, dets, shape,
+                                final.phantom(shape.points), opt)
+        if not won and not lost:
+            break
+        say(f"second look with the calibrated camera: {len(won)} frame(s) identified anew, "
+            f"{len(lost)} no longer unique")
+        usable = sorted({id(fr): fr for fr in usable + won if fr not in lost}.values(),
+                        key=lambda fr: order.index(fr["frame"]))
+    _mirrors(final, usable, obs, shape, radius, opt)
+    if opt.distortion == "auto":
+        _centred_alternative(final, fits, choice, obs, shape, radius, cam, opt)
+    conv = sorted({fr["search"].convention for fr in frames if fr["search"].convention})
+    return FreeResult(final.camera, final, frames, choice, shape, "; ".join(conv), fits, refinement, pinhole)
+
+
+def _solve(fams, cam, usable, dets, shape, radius, opt: FreeOptions):
+    """Bundle, distortion choice and frame judgement until no frame is
+    rejected; returns (final, fits, choice, refinement, pinhole, usable, obs)."""
     for attempt in range(6):
         obs, fits, usable = _fit_families(fams, cam, usable, dets, shape, radius, opt)
         if opt.distortion == "auto":
@@ -128,17 +154,11 @@ def calibrate_free(scan, markers: dict, geometry, opt: FreeOptions = FreeOptions
         final = fits[chosen.name] = adjust(chosen, cam, obs, shape.points, radius, None, None,
                                            start=start, max_nfev=100)
         if not _judge(final, usable, obs, opt):
-            break
+            return final, fits, choice, refinement, pinhole, usable, obs
         usable = [fr for fr in usable if fr["status"].ok]
         if len(usable) < 2:
             raise FitError("fewer than 2 frames left at the noise floor")
-    else:
-        raise FitError("frames kept being rejected after 6 bundle adjustments; the model does not fit this scan")
-    _mirrors(final, usable, obs, shape, radius, opt)
-    if opt.distortion == "auto":
-        _centred_alternative(final, fits, choice, obs, shape, radius, cam, opt)
-    conv = sorted({fr["search"].convention for fr in frames if fr["search"].convention})
-    return FreeResult(final.camera, final, frames, choice, shape, "; ".join(conv), fits, refinement, pinhole)
+    raise FitError("frames kept being rejected after 6 bundle adjustments; the model does not fit this scan")
 
 
 def _refine_phantom(chosen, choice, fits, fams, cam, obs: Observations, shape, radius, opt: FreeOptions):
@@ -176,7 +196,7 @@ def _fit_families(fams, cam, usable, dets, shape, radius, opt):
     for fam in fams[1:]:
         fits[fam.name] = adjust(fam, cam, obs, shape.points, radius, R0, t0, start=base)
     flexible = min(fits.values(), key=lambda b: float(np.mean(np.sum(b.residual_px ** 2, 1))))
-    obs, kept = _regather(flexible, usable, dets, shape, radius, opt)
+    obs, kept = _regather(flexible, obs, usable, dets, shape, radius, opt)
     idx = [slots[fr["frame"]] for fr in kept]
     R0, t0 = flexible.R[idx], flexible.t[idx]
     fits = {"none": adjust(family_named("none"), cam, obs, shape.points, radius, R0, t0, frame_intrinsics=fi)}
@@ -204,17 +224,35 @@ def _observations(usable, dets):
     return (Observations(np.array(slot), np.array(sph), np.vstack(xy), np.concatenate(sig)), slots)
 
 
-def _regather(b: Bundle, usable, dets, shape, radius, opt: FreeOptions):
+def _regather(b: Bundle, obs: Observations, usable, dets, shape, radius, opt: FreeOptions):
     """Re-assign every frame's detections at the bundle's prediction, within
     ``outlier_factor`` pooled RMS (at least 0.5 px): picks up spheres the
-    search missed, sets aside markers the model cannot explain."""
+    search missed, sets aside markers the model cannot explain. A marker is
+    also set aside when its residual exceeds ``outlier_factor`` robust scales
+    of the fit's residuals in units of its own sigma (a blob merged with
+    clutter keeps its neighbours' sigma: 0.5 px off at sigma 0.05 is well
+    inside the px gate, yet pulls the whole bundle)."""
     pooled = float(np.sqrt(np.mean(np.sum(b.residual_px ** 2, 1))))
     gate = max(0.5, opt.outlier_factor * pooled)
+    # (|r| / sigma of a 2-D Gaussian has median 1.1774 sigma's scale)
+    scale = float(np.median(np.linalg.norm(b.residual_px, axis=1) / obs.sigma)) / 1.1774
+    pts = b.phantom(shape.points)
+    found, far = [], np.zeros(len(pts))
+    seen = np.zeros(len(pts))
     for s, fr in enumerate(usable):
-        X, _ = dets[fr["frame"]]
-        pts = b.phantom(shape.points)
+        X, S = dets[fr["frame"]]
         pred = b.predict(pts, np.full(len(pts), s), radius)
         p, d = assign(pred, X, gate)
+        out = np.linalg.norm(pred[p] - X[d], axis=1) > opt.outlier_factor * scale * S[d]
+        found.append((p, d, out))
+        np.add.at(seen, p, 1)
+        np.add.at(far, p[out], 1)
+    # a sphere off in most of its frames is the phantom's or the model's error
+    # (a sphere off its CAD position), for the refinement and diagnose, not gross
+    systematic = far > 0.3 * np.maximum(seen, 1)
+    for fr, (p, d, out) in zip(usable, found):
+        good = ~out | systematic[p]
+        p, d = p[good], d[good]
         fr["pairs"] = (d, p)
         fr["set_aside"] = int(len(fr["search"].best.det) - len(np.intersect1d(d, fr["search"].best.det)))
     keep = [fr for fr in usable if len(fr["pairs"][0]) >= opt.search.min_spheres]

@@ -76,10 +76,10 @@ def _polish(cam: Camera, shape: PhantomShape, xy: np.ndarray, cand: Candidate, g
         rms = float(np.sqrt(np.mean(np.sum(res ** 2, 1))))
     else:
         rms = np.inf
-    return Candidate(det, sph, R, t, rms, cand.how, cand.lattice_map, _missing(cam, shape, R, t, sph))
+    return Candidate(det, sph, R, t, rms, cand.how, cand.lattice_map, unseen_spheres(cam, shape, R, t, sph))
 
 
-def _missing(cam: Camera, shape: PhantomShape, R, t, sph) -> int:
+def unseen_spheres(cam: Camera, shape: PhantomShape, R, t, sph) -> int:
     """Phantom spheres this pose puts well inside the detector, clear of every
     other sphere's shadow, that no detection was assigned to: evidence
     against the pose (a labelling one pitch off predicts a column where the

@@ -1,0 +1,157 @@
+"""detect and fit-pose end to end on rendered image-intensifier radiographs
+(issues 29 and 32).
+
+Frames from ``benchmarks/carm_images.py``, written by a helper session that
+never saw conecal's code: a 6x6 steel-sphere grid in a PMMA plate whose edges
+cross the field, or a 3-D ball phantom whose shadows touch and overlap, at
+free poses; veiling glare, vignetting, a pincushion and a per-frame S-twist,
+blur, quantum noise, an 8-bit log display (and JPEG in two cases), rods and
+a soft background in one; nominal magnification off by -25 / +25 % in two.
+Truth: each sphere's own attenuation centroid after the distortion.
+
+Per case: ``conecal detect`` (the CLI, default options) and the free-pose
+calibration (``calibrate_free``, default options) on its markers. Printed:
+spheres found of those in the field and not truncated, by overlap; RMS and
+pull std per flag class; false detections; frames ok / ambiguous /
+rejected; wrong ok (an ok frame whose labels are not the true ones up to
+the phantom's symmetry); reprojection RMS; held-out 3-D points' RMS.
+
+    python benchmarks/bench_images.py [--cases ball3d_ii grid_ii] [--seeds 1 2]
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib.util
+import json
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+from bench_free import identity_right  # noqa: E402
+from conecal.calib.run import FreeOptions, calibrate_free  # noqa: E402
+from conecal.calib.document import free_document  # noqa: E402
+from conecal.scan import load_scan  # noqa: E402
+from conecal.stats import mad_sigma  # noqa: E402
+
+HERE = Path(__file__).parent
+
+
+def _generator():
+    spec = importlib.util.spec_from_file_location("carm_images", HERE / "carm_images.py")
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod
+
+
+def _match(markers: list, centres: list):
+    """For each marker the truth centre it is (index) or None: nearest within
+    half the shadow's diameter, each truth once."""
+    out, used = [None] * len(markers), set()
+    if not centres:
+        return out
+    T = np.array([[c["x"], c["y"]] for c in centres])
+    for i, m in enumerate(markers):
+        d = np.hypot(T[:, 0] - m["x"], T[:, 1] - m["y"])
+        j = int(np.argmin(d))
+        if d[j] < 0.5 * centres[j]["diameter_px"] and j not in used:
+            used.add(j)
+            out[i] = j
+    return out
+
+
+def run_case(gen, name: str, seed: int, root: Path) -> dict:
+    out = root / f"{name}_{seed}"
+    gen.make_case(name, seed, out)
+    truth = json.loads((out / "truth.json").read_text())
+    mpath = out / "markers.json"
+    t0 = time.perf_counter()
+    subprocess.run(["conecal", "-q", "detect", str(out / "scan"), "-o", str(mpath)], check=True)
+    t_detect = time.perf_counter() - t0
+    mdoc = json.loads(mpath.read_text())
+    by_frame = {int(f["frame"]): f["markers"] for f in mdoc["frames"]}
+    n_in = {"overlap": 0, "separate": 0}
+    found = {"overlap": 0, "separate": 0}
+    errs = {"overlap": [], "separate": []}
+    pulls: dict = {}
+    false = 0
+    true_ids = {}
+    for k, centres in enumerate(truth["centres"]):
+        ms = by_frame.get(k, [])
+        which = _match(ms, centres)
+        true_ids[k] = [None if j is None else int(centres[j]["id"]) for j in which]
+        false += sum(j is None for j in which)
+        hit = {j: m for m, j in zip(ms, which) if j is not None}
+        for j, c in enumerate(centres):
+            if c["truncated"]:
+                continue
+            cls = "overlap" if c["overlap"] else "separate"
+            n_in[cls] += 1
+            if j in hit:
+                m = hit[j]
+                found[cls] += 1
+                e = (m["x"] - c["x"], m["y"] - c["y"])
+                errs[cls].append(e)
+                key = ",".join(sorted(m["flags"])) or "unflagged"
+                pulls.setdefault(key, []).extend([e[0] / m["sigma"], e[1] / m["sigma"]])
+    scan = load_scan(out / "scan")
+    t1 = time.perf_counter()
+    try:
+        res = calibrate_free(scan, mdoc, scan.nominal_geometry(), FreeOptions())
+    except Exception as exc:   # a failed fit is a result here, not a crash
+        return {"case": name, "seed": seed, "fit_failed": str(exc), "time_detect_s": t_detect}
+    t_fit = time.perf_counter() - t1
+    doc = free_document(res, FreeOptions(), {"format": "conecal-poses/1"})
+    b = res.bundle
+    n_ok = n_amb = wrong = 0
+    held = []
+    for fr, f in zip(doc["frames"], res.frames):
+        st = fr["status"]
+        n_amb += st.startswith("ambiguous")
+        if st != "ok":
+            continue
+        n_ok += 1
+        if not identity_right(fr, true_ids[fr["frame"]], scan.phantom):
+            wrong += 1
+            continue
+        h = next(h for h in truth["heldout"] if h["frame"] == fr["frame"])
+        if h["points"]:
+            P, Q = np.array(h["points"]), np.array(h["pixels"])
+            held.append(np.sum((b.predict(P, np.full(len(P), f["slot"])) - Q) ** 2, 1))
+    return {"case": name, "seed": seed,
+            "found": {c: f"{found[c]}/{n_in[c]}" for c in n_in},
+            "rms_px": {c: float(np.sqrt(np.mean(np.square(errs[c])))) if errs[c] else None for c in errs},
+            "pull_std": {k: [round(float(np.std(v)), 2), round(float(mad_sigma(v)), 2), len(v) // 2]
+                         for k, v in sorted(pulls.items())},
+            "false": false, "frames": len(doc["frames"]), "ok": n_ok, "ambiguous": n_amb, "wrong_ok": wrong,
+            "rms_fit_px": doc["summary"]["rms_px"], "family": doc["distortion"]["family"] if doc["distortion"] else
+            "none", "heldout_rms_px": float(np.sqrt(np.mean(np.concatenate(held)))) if held else None,
+            "time_detect_s": round(t_detect, 1), "time_fit_s": round(t_fit, 1)}
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--cases", nargs="*")
+    ap.add_argument("--seeds", type=int, nargs="*", default=[1])
+    ap.add_argument("--work", type=Path, help="keep the cases here (default: a temporary folder)")
+    a = ap.parse_args(argv)
+    gen = _generator()
+    cases = a.cases or list(gen.CASES)
+    print("# bench_images: cases from benchmarks/carm_images.py (independent renderer)")
+    with tempfile.TemporaryDirectory() as tmp:
+        root = a.work or Path(tmp)
+        for seed in a.seeds:
+            for name in cases:
+                print(json.dumps(run_case(gen, name, seed, root)), flush=True)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
