@@ -110,8 +110,8 @@ def _grow(a, m, R1, mu1, mu0, ratio, blur, noise, kappa, mask_out, invalid, keep
         _, sph, _, bg, chi2, n = fit
         resid = (a[q0:q1, c0:c1] - group_model(box, sph, bg, blur)) * wgt
         score = cv2.filter2D(resid.astype(np.float32), -1, disc, borderType=cv2.BORDER_CONSTANT)
-        # the next part inside the blob: beyond it the residual's peak is a
-        # wall's or a neighbour's, and a part started there wanders off
+        # the next part inside the blob or touching a part found: beyond, the
+        # residual's peak is a wall's or a neighbour's, and a part started there wanders off
         score[~_within(xx, yy, m, reach, sph, R1)] = -np.inf
         iy, ix = np.unravel_index(int(np.argmax(score)), score.shape)
         new = np.array([[c0 + ix, q0 + iy, R1, mu0]])
@@ -169,8 +169,8 @@ def _grow(a, m, R1, mu1, mu0, ratio, blur, noise, kappa, mask_out, invalid, keep
 
 def _best_within(a, starts, m, reach: float, R1: float, blur, noise, mask_out, invalid, box, quadratic: bool):
     """The lowest-chi2 joint fit from ``starts`` whose parts all stay within
-    ``reach`` px of blob ``m`` (a part that wandered out went to fit
-    something else), or None."""
+    ``reach`` px of blob ``m`` or touch one that does (:func:`_anchored`; a
+    part that wandered out went to fit something else), or None."""
     best = None
     for st in starts:
         f = fit_group(a, st, blur, noise, mask_out, invalid, box=box, quadratic=quadratic)
