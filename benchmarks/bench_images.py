@@ -22,7 +22,6 @@ the phantom's symmetry); reprojection RMS; held-out 3-D points' RMS.
 from __future__ import annotations
 
 import argparse
-import importlib.util
 import json
 import subprocess
 import sys
@@ -35,21 +34,12 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
+import carm_images as gen  # noqa: E402
 from bench_free import identity_right  # noqa: E402
 from conecal.calib.run import FreeOptions, calibrate_free  # noqa: E402
 from conecal.calib.document import free_document  # noqa: E402
 from conecal.scan import load_scan  # noqa: E402
 from conecal.stats import mad_sigma  # noqa: E402
-
-HERE = Path(__file__).parent
-
-
-def _generator():
-    spec = importlib.util.spec_from_file_location("carm_images", HERE / "carm_images.py")
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
-
 
 def _match(markers: list, centres: list):
     """For each marker the truth centre it is (index) or None: nearest within
@@ -142,7 +132,6 @@ def main(argv=None) -> int:
     ap.add_argument("--seeds", type=int, nargs="*", default=[1])
     ap.add_argument("--work", type=Path, help="keep the cases here (default: a temporary folder)")
     a = ap.parse_args(argv)
-    gen = _generator()
     cases = a.cases or list(gen.CASES)
     print("# bench_images: cases from benchmarks/carm_images.py (independent renderer)")
     with tempfile.TemporaryDirectory() as tmp:
