@@ -129,6 +129,8 @@ def free_document(res: FreeResult, opt: FreeOptions, header: dict) -> dict:
                 out.update(b.frame_camera(s).geometry().to_dict())
         if fr["search"].convention:
             out["convention"] = fr["search"].convention
+        if fr.get("identified_by") and st.ok:
+            out["identified_by"] = fr["identified_by"]
         if "mirror_delta_chi2" in fr:
             out["mirror_delta_chi2"] = fr["mirror_delta_chi2"]
         frames.append(out)

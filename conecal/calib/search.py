@@ -164,7 +164,7 @@ def search_frame(cam: Camera, shape: PhantomShape, xy: np.ndarray, guess=None,
     if shape.symmetries and rivals:
         twins, maps, rivals = _by_symmetry(shape, best, rivals)
         if twins:
-            best = _by_convention([best] + twins, shape, guess, opt)
+            best = by_convention([best] + twins, shape, guess, opt)
             convention = ("labelled by convention (phantom normal towards the detector, then the smallest turn) "
                           "among poses its symmetry makes identical: "
                           + "; ".join(sorted({symmetry_name(M, shape.basis) for M in maps})))
@@ -180,7 +180,7 @@ def search_frame(cam: Camera, shape: PhantomShape, xy: np.ndarray, guess=None,
     return SearchResult(OK, best, [], convention)
 
 
-def _by_convention(twins: list, shape: PhantomShape, guess, opt: SearchOptions) -> Candidate:
+def by_convention(twins: list, shape: PhantomShape, guess=None, opt: SearchOptions = SearchOptions()) -> Candidate:
     """One of poses the phantom's symmetry makes identical: the one a guess
     agrees with, else the phantom normal towards +z, then the smallest turn."""
     if guess is not None:

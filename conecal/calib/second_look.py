@@ -11,19 +11,25 @@ frame is searched again on its undistorted detections, three times denser,
 and each candidate (the first search's and the new) is refitted with the
 calibrated camera and compared at the scan's noise floor: one that
 explains as many spheres and fits by more than ``mirror_chi2`` better than
-every other, at the noise floor itself, is the frame's identity; otherwise
-the frame keeps its status. Units: px, mm.
+every other, at the noise floor itself, is the frame's identity. Every
+other ok frame is also refitted from the poses its neighbouring frames
+predict: when an identification found that way fits it as well, the frame
+is ambiguous (its visible spheres admit the phantom turned), and when one
+fits clearly better, it is the frame's identity. When identifications tie,
+the neighbouring frames' poses may break the tie (``neighbours.py``);
+otherwise the frame keeps its status. Units: px, mm.
 """
 
 from __future__ import annotations
 
-from dataclasses import replace
+from dataclasses import dataclass, replace
 
 import numpy as np
 
 from ..documents.status import OK, ambiguous
 from .bundle import Bundle
 from .candidate import Candidate, assign, refine_pose
+from .neighbours import by_neighbours, predicted, same_pose
 from .search import search_frame, unseen_spheres
 
 # the statuses a second look may overturn: not a frame with too few markers
@@ -76,14 +82,15 @@ def second_look(b: Bundle, out: list, usable: list, dets: dict, shape, points: n
     ``usable`` (in the bundle, slot order) that leave more than a tenth of
     their detections, and 3 or more, unexplained (a phantom with a symmetric
     part, as a biplane's square grid, can be labelled with that part turned
-    and fit within the noise on the spheres it keeps). Returns (frames that
-    now have an identity, frames in the bundle that no longer have one,
-    set ambiguous). ``shape``: the PhantomShape searched; ``points``: the
+    and fit within the noise on the spheres it keeps), and the other frames
+    of ``usable`` refitted from their neighbours' poses (``_doubted``); ties
+    go to ``by_neighbours``. Returns (frames that now have an identity,
+    frames in the bundle that no longer have one, set ambiguous). ``shape``: the PhantomShape searched; ``points``: the
     phantom (P, 3) mm as the bundle has it; ``opt``: FreeOptions."""
     pooled = float(np.sqrt(np.mean(np.sum(b.residual_px ** 2, 1))))    # 2-D RMS, px
     gate = max(0.5, opt.outlier_factor * pooled)
     cam, dist = _frame_model(b)
-    won, lost = [], []
+    won, lost, ties = [], [], {}
     for fr in usable:
         s = fr["slot"]
         n = len(dets[fr["frame"]][0])
@@ -92,11 +99,13 @@ def second_look(b: Bundle, out: list, usable: list, dets: dict, shape, points: n
             continue
         current = Candidate(np.asarray(d), np.asarray(p), b.R[s], b.t[s], how=fr["search"].best.how)
         verdict = _decide(cam, dist, shape, points, dets[fr["frame"]][0], [current], gate, pooled, opt)
-        if verdict is None or isinstance(verdict, str):
-            fr["status"] = ambiguous("ambiguous_identity", verdict or "no identification explains this frame's "
-                                     "markers at the noise floor with the calibrated camera")
+        if verdict is None or isinstance(verdict, Tie):
+            fr["status"] = ambiguous("ambiguous_identity", verdict.sentence if verdict else "no identification "
+                                     "explains this frame's markers at the noise floor with the calibrated camera")
             fr["slot"] = None
             lost.append(fr)
+            if verdict:
+                ties[fr["frame"]] = (fr, verdict)
         elif not _same(verdict[0], current) or len(verdict[0].sph) > len(current.sph) + 1:
             _identified(fr, *verdict)
             won.append(fr)
@@ -106,10 +115,38 @@ def second_look(b: Bundle, out: list, usable: list, dets: dict, shape, points: n
             continue
         old = [res.best, *res.alternatives] if res.best is not None else []
         verdict = _decide(cam, dist, shape, points, dets[fr["frame"]][0], old, gate, pooled, opt)
-        if verdict is not None and not isinstance(verdict, str):
+        if isinstance(verdict, Tie):
+            ties[fr["frame"]] = (fr, verdict)
+        elif verdict is not None:
             _identified(fr, *verdict)
             won.append(fr)
+    for fr, tie in list(_doubted(b, usable, lost + won, dets, shape, points, gate, pooled, opt)):
+        fr["slot"] = None
+        lost.append(fr)
+        fr["status"] = ambiguous("ambiguous_identity", tie.sentence)
+        ties[fr["frame"]] = (fr, tie)
+    # (a frame identified anew is where its new identity puts it)
+    posed = {fr["frame"]: (fr["search"].best.R, fr["search"].best.t) if fr in won else (b.R[fr["slot"]], b.t[fr["slot"]])
+             for fr in usable if fr not in lost}
+    posed.update({fr["frame"]: (fr["search"].best.R, fr["search"].best.t) for fr in won})
+    chosen = by_neighbours(cam, shape, points, posed, {k: v.cands for k, (_, v) in ties.items()})
+    for k, (c, why) in chosen.items():
+        fr, verdict = ties[k]
+        _identified(fr, c, verdict.convention)
+        fr["identified_by"] = why
+        if fr in lost:
+            lost.remove(fr)
+        won.append(fr)
     return won, lost
+
+
+@dataclass
+class Tie:
+    """Identifications that fit a frame alike (best first), and why."""
+
+    sentence: str
+    cands: list
+    convention: str = ""
 
 
 def _identified(fr: dict, best: Candidate, convention: str) -> None:
@@ -123,12 +160,18 @@ def _identified(fr: dict, best: Candidate, convention: str) -> None:
 def _decide(cam, dist, shape, points, xy, old: list, gate: float, pooled: float, opt):
     """The frame searched again on its undistorted detections ``xy``; with
     ``old`` candidates, all refitted with the calibrated camera. Returns
-    (winner, convention), a sentence when identifications tie, or None when
+    (winner, convention), a Tie when identifications tie, or None when
     none is at the noise floor."""
     xy = dist.undistort(xy) if dist is not None else xy
     again = search_frame(cam, shape, xy, None, replace(opt.search, n_orientations=3 * opt.search.n_orientations))
     new = [again.best, *again.alternatives] if again.best is not None else []
-    cands = [_refit(cam, points, xy, c, gate) for c in old + new]
+    return _rank(cam, shape, points, xy, old + new, gate, pooled, opt, again.convention)
+
+
+def _rank(cam, shape, points, xy, cands: list, gate: float, pooled: float, opt, convention: str = ""):
+    """``cands`` refitted on undistorted detections ``xy`` with the calibrated
+    camera and ranked: (winner, convention), a Tie, or None (see _decide)."""
+    cands = [_refit(cam, points, xy, c, gate) for c in cands]
     cands = [replace(c, missing=unseen_spheres(cam, shape, c.R, c.t, c.sph)) for c in cands
              if np.isfinite(c.rms_px) and len(c.sph) >= opt.search.min_spheres]
     # (a handful of spheres fits anywhere at the noise: a pose must explain
@@ -147,10 +190,59 @@ def _decide(cam, dist, shape, points, xy, old: list, gate: float, pooled: float,
     if best.rms_px > opt.floor_factor * pooled:
         return None
     if tied:
-        return (f"{len(tied) + 1} identifications fit about equally with the calibrated camera (best "
-                f"{len(best.sph)} spheres at {best.rms_px:.2f} px; also " +
-                ", ".join(f"{len(c.sph)} at {c.rms_px:.2f} px" for c in tied[:3]) + ")")
-    return best, again.convention
+        return Tie(f"{len(tied) + 1} identifications fit about equally with the calibrated camera (best "
+                   f"{len(best.sph)} spheres at {best.rms_px:.2f} px; also " +
+                   ", ".join(f"{len(c.sph)} at {c.rms_px:.2f} px" for c in tied[:3]) + ")", [best] + tied,
+                   convention)
+    return best, convention
+
+
+def _doubted(b: Bundle, usable: list, settled: list, dets: dict, shape, points, gate, pooled, opt):
+    """Ok frames that another identification fits as well or better, one
+    found from the poses their neighbouring frames predict (a phantom whose
+    visible spheres admit it turned by 180 deg, a marker lost where the turn
+    would show), each frame with its own camera and distortion from the
+    bundle. Yields (frame, Tie of the frame's identity and its rivals): such
+    a frame is ambiguous unless its neighbours break the tie (an ok frame's
+    identity is never replaced here: on a real intensifier recording a
+    rival one column off beat the right one under the scan's median
+    per-frame distortion). ``settled``: frames of ``usable`` already
+    re-identified or set aside."""
+    posed = {fr["frame"]: fr for fr in usable if fr not in settled}
+    preds = predicted(b.camera, shape, points, {k: (b.R[fr["slot"]], b.t[fr["slot"]]) for k, fr in posed.items()})
+    for k, poses in preds.items():
+        fr = posed[k]
+        cam, dist = b.frame_camera(fr["slot"]), b.frame_distortion(fr["slot"])
+        xy = dets[k][0]
+        xy = dist.undistort(xy) if dist is not None else xy
+        d, p = fr["pairs"]
+        current = Candidate(np.asarray(d), np.asarray(p), b.R[fr["slot"]], b.t[fr["slot"]], how=fr["search"].best.how)
+        starts = []
+        for R, t in poses:
+            # (a neighbour's pose is tens of px off: each detection goes to the
+            # nearest sphere within half the spheres' median spacing)
+            q = cam.project(points @ R.T + t)
+            spacing = np.linalg.norm(q[:, None] - q[None], axis=-1) + np.diag(np.full(len(q), np.inf))
+            sph, det = assign(q, xy, max(4 * gate, 0.5 * float(np.median(spacing.min(1)))))
+            if len(sph) >= opt.search.min_spheres:
+                starts.append(Candidate(det, sph, R, t, how="from the neighbouring frames' poses"))
+        if not starts:
+            continue
+        verdict = _rank(cam, shape, points, xy, [current] + starts, gate, pooled, opt, fr["search"].convention)
+        if verdict is None:
+            continue
+        cands = verdict.cands if isinstance(verdict, Tie) else [verdict[0]]
+        # (an ok frame is doubted only by a rival that explains as many of
+        # its detections: one explaining fewer, with fewer spheres unseen,
+        # tied with right frames of an independent generator's helix)
+        others = [c for c in cands if not same_pose(cam, shape, points, c, current) and len(c.sph) >= len(current.sph)]
+        if others:
+            mine = _refit(cam, points, xy, current, gate)
+            yield fr, Tie(f"{len(others) + 1} identifications fit about equally with the calibrated camera ("
+                          f"{len(mine.sph)} spheres at {mine.rms_px:.2f} px; also " +
+                          ", ".join(f"{len(c.sph)} at {c.rms_px:.2f} px" for c in others[:3]) +
+                          "), one of them from the pose the neighbouring frames predict", [mine] + others,
+                          fr["search"].convention)
 
 
 def _same(a: Candidate, b: Candidate) -> bool:
