@@ -7,12 +7,12 @@ two or more identifications equally, and they differ by a symmetry's
 displacement (a quarter turn, one pitch), which the neighbouring frames'
 poses can tell apart. Whether the scan is such a sequence is measured, not
 assumed: each ok frame's pose is predicted from its ok neighbours the same
-way, and the largest miss among the ok frames near it is the scale. A tie is broken only when one
-candidate lies within twice that scale of its prediction and every other
-one three times as far as the scale and as the one: were a rival the
-truth, the prediction would have missed by three times more than at any
-ok frame. A scan of hand-placed, unordered poses has a large scale and
-breaks no tie.
+way, and the largest miss among the ok frames near it is the scale. A tie
+is broken only when one candidate lies within twice that scale of its
+prediction and every other one three times as far as the scale and as the
+one: were a rival the truth, the prediction would have missed by three
+times more than at any ok frame nearby. A scan of hand-placed, unordered
+poses has a large scale and breaks no tie.
 Units: px (the calibrated camera's projections of the whole phantom).
 """
 
@@ -164,7 +164,8 @@ def by_neighbours(cam, shape: PhantomShape, points: np.ndarray, posed: dict, tie
         rest = np.array([miss[j] for j in order[1:] if not same_pose(cam, shape, points, cands[j], w)] + [np.inf])
         if best <= WITHIN * s and (rest >= SEPARATION * max(s, best)).all():
             used = " and ".join(str(j) for j in pred[3])
-            out[k] = (_conventional(points, perms, shape, w), f"of {len(cands)} identifications that fit alike, the one within "
-                      f"{best:.1f} px of the pose neighbouring frame(s) {used} predict (ok frames near it: within "
-                      f"{s:.1f} px; the others {rest.min():.0f} px or more)")
+            out[k] = (_conventional(points, perms, shape, w),
+                      f"of {len(cands)} identifications that fit alike, the one within {best:.1f} px of the pose "
+                      f"neighbouring frame(s) {used} predict (ok frames near it: within {s:.1f} px; the others "
+                      f"{rest.min():.0f} px or more)")
     return out

@@ -126,8 +126,7 @@ def second_look(b: Bundle, out: list, usable: list, dets: dict, shape, points: n
         fr["status"] = ambiguous("ambiguous_identity", tie.sentence)
         ties[fr["frame"]] = (fr, tie)
     # (a frame identified anew is where its new identity puts it)
-    posed = {fr["frame"]: (fr["search"].best.R, fr["search"].best.t) if fr in won else (b.R[fr["slot"]], b.t[fr["slot"]])
-             for fr in usable if fr not in lost}
+    posed = {fr["frame"]: (b.R[fr["slot"]], b.t[fr["slot"]]) for fr in usable if fr not in lost and fr not in won}
     posed.update({fr["frame"]: (fr["search"].best.R, fr["search"].best.t) for fr in won})
     chosen = by_neighbours(cam, shape, points, posed, {k: v.cands for k, (_, v) in ties.items()})
     for k, (c, why) in chosen.items():
