@@ -9,7 +9,9 @@ case's markers.json holds noisy centres without identities.
 
 Per case: frames ok / ambiguous / rejected, wrong ok (an ok frame whose
 fitted phantom does not lie where the true one lies, sphere for sphere up
-to the phantom's own symmetry), reprojection RMS against the noise floor,
+to the symmetry of the spheres it matched), turned ok (right spheres, but
+the map is no symmetry of the whole phantom: the pose is turned),
+reprojection RMS against the noise floor,
 held-out 3-D points (inside the phantom's volume, off a grid's plane;
 carried through the symmetry a frame was labelled by)
 projected through each method's calibration, intrinsics and poses against
@@ -152,7 +154,7 @@ def run_case(make, name: str, seed: int, root: Path, frame_intrinsics: tuple = (
     held = _heldout(truth)
     sigma = float(label.get("sigma_px", truth.get("sigma_px", 0.05)))
     z_frame = []     # per-frame intrinsics against a sagging generator's per-frame truth
-    n_ok = n_amb = n_wrong = 0
+    n_ok = n_amb = n_wrong = n_turned = 0
     z_intr, z_pose, held_err = [], [], []
     maps = {}    # frame -> map of true phantom coordinates to the labelling conecal gave
     err, err_names, stated = [], [], []   # for the whitened coverage
@@ -170,6 +172,8 @@ def run_case(make, name: str, seed: int, root: Path, frame_intrinsics: tuple = (
             n_wrong += 1
             continue
         s = f["slot"]
+        if not whole_symmetry(to_ours, scan.phantom.positions):
+            n_turned += 1
         if "intrinsics" in fr and "frame_sdd" in truth:
             tv = [truth["frame_sdd"][k], *truth["frame_principal_point"][k]]
             z_frame.append([(fr["intrinsics"][n]["value"] - v) / fr["intrinsics"][n]["sigma"]
@@ -200,7 +204,7 @@ def run_case(make, name: str, seed: int, root: Path, frame_intrinsics: tuple = (
     cvr = opencv_case(scan, res, held, by_frame, maps)
     dist = doc["distortion"]
     return {"case": name, "seed": seed, "frames": len(doc["frames"]), "ok": n_ok, "ambiguous": n_amb,
-            "wrong_ok": n_wrong, "rms_over_floor": ok_rms / sigma,
+            "wrong_ok": n_wrong, "turned_ok": n_turned, "rms_over_floor": ok_rms / sigma,
             "heldout_rms_px": float(np.sqrt(np.mean(np.concatenate(held_err)))) if held_err else float("nan"),
             "intrinsics_z": [round(float(z), 2) for z in z_intr],
             "pose_cover_1sigma": float(np.mean(np.abs(z_pose) < 1)) if z_pose else float("nan"),
@@ -269,6 +273,17 @@ def identity_map(fr: dict, true_ids: list, phantom):
     if float(np.abs(a @ R.T - b).max()) >= 0.05:
         return None
     return lambda H: (np.asarray(H) - B.mean(0)) @ R + A.mean(0)
+
+
+def whole_symmetry(to_ours, positions: np.ndarray, tol: float = 0.05) -> bool:
+    """Whether the map an ok frame was labelled by carries the whole phantom
+    onto itself (within ``tol`` mm): a symmetry of the phantom, the pose as
+    good as the true one. Otherwise only the spheres that frame matched are
+    symmetric: their projections are right, the pose (the orbit a
+    reconstruction needs) is turned."""
+    moved = to_ours(positions)
+    d = np.linalg.norm(moved[:, None] - positions[None], axis=-1)
+    return bool((d.min(1) < tol).all())
 
 
 def identity_right(fr: dict, true_ids: list, phantom) -> bool:
@@ -343,7 +358,9 @@ def main(argv=None) -> int:
     ok = sum(r["ok"] for r in rows)
     n = sum(r["frames"] for r in rows)
     wrong = sum(r["wrong_ok"] for r in rows)
-    print(f"# total: {ok}/{n} frames ok ({100 * ok / max(n, 1):.1f} %), {wrong} wrong ok")
+    turned = sum(r["turned_ok"] for r in rows)
+    print(f"# total: {ok}/{n} frames ok ({100 * ok / max(n, 1):.1f} %), {wrong} wrong ok, {turned} ok with the "
+          "phantom turned by a symmetry of the spheres seen only")
     fin = [r for r in rows if np.isfinite(r["heldout_rms_px"]) and np.isfinite(r["cv_heldout_rms_px"])]
     if fin:
         print(f"# held-out 3-D points RMS px: conecal median {np.median([r['heldout_rms_px'] for r in fin]):.4f}, "
