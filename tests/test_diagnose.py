@@ -119,8 +119,8 @@ def test_blind_image_and_detector_effects(tmp_path, name, spec, label, key, true
     level (each shadow rendered from the fitted scene against the recorded
     one) sees them. S-shaped distortion moves the centres; the image level,
     rendering through the found warp, then sees nothing more."""
-    # 16 of the 72 frames at the image level: a 5 % effect is seen many sigma over (the suite's time)
-    d = bench.run_one(bench.make(tmp_path, name, spec, seed=12), extra=("--image-frames", "16"))
+    # 8 of the 72 frames at the image level: a 5 % effect is seen many sigma over (the suite's time)
+    d = bench.run_one(bench.make(tmp_path, name, spec, seed=12), extra=("--image-frames", "8"))
     assert [e["effect"] for e in d["effects"]] == [label], d["verdict"]
     e = d["effects"][0]
     assert abs(e["parameters"][key] - true) < max(4 * e["sigma"][key], 0.1 * true)
