@@ -19,6 +19,7 @@ Units: px (the calibrated camera's projections of the whole phantom).
 from __future__ import annotations
 
 from dataclasses import replace
+from functools import lru_cache
 
 import numpy as np
 
@@ -59,9 +60,11 @@ def _predict(poses: dict, k: int):
     return None
 
 
+@lru_cache(maxsize=8)
 def _relabellings(shape: PhantomShape) -> list:
     """Sphere index permutations the phantom's own symmetries make (the
-    identity first): labellings that give the same image."""
+    identity first): labellings that give the same image. (Cached: every
+    pose comparison asks for them; a PhantomShape is immutable.)"""
     perms = [np.arange(len(shape.points))]
     if shape.lattice is not None:
         index = shape.lattice_index()
