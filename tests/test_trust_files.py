@@ -107,7 +107,7 @@ def _alive(pid: int) -> bool:
 
 @pytest.mark.skipif(not Path("/proc").is_dir(), reason="needs /proc to see the workers")
 def test_sigterm_to_detect_ends_its_workers_and_writes_nothing(tmp_path):
-    scan = write_scan(rotation_scan(5, rows=256, cols=256, n_frames=1500), tmp_path / "scan")
+    scan = write_scan(rotation_scan(5, rows=256, cols=256, n_frames=400), tmp_path / "scan")
     out = tmp_path / "m.json"
     proc = subprocess.Popen(CONECAL + ["detect", str(scan), "-o", str(out), "--workers", "2"],
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)

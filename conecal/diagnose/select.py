@@ -68,9 +68,11 @@ def _fit(model, cands, select=None, x0=None, exact: bool = False):
     # thousands of iterations without meeting 1e-10 (4-40 s a fit): chi2
     # changes in the 8th digit by then, so the tolerances are 1e-8 and the
     # iterations bounded (not the exact polish's, whose differences count as
-    # evaluations).
+    # evaluations): at 100 rather than 300 evaluations, every verdict and
+    # number of the form-variant benchmark is unchanged and diagnose takes
+    # half the time (benchmarks/RESULTS.md, 2026-11-27).
     res = least_squares(fun, x0, jac=jac if Jb is not None else "2-point", x_scale=scales, method="lm", xtol=1e-8, ftol=1e-8,
-                        max_nfev=min(200 * len(x0), 300) if Jb is not None else 200 * len(x0))
+                        max_nfev=min(200 * len(x0), 100) if Jb is not None else 200 * len(x0))
     J = res.jac
     try:
         cov = np.linalg.pinv(J.T @ J)
