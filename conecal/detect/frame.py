@@ -295,6 +295,15 @@ def refine(a: np.ndarray, x0: float, y0: float, r0: float, opt: DetectOptions, o
     odd = 0.5 * (bw - refl[win])
     s_odd = sig_bg * np.exp(np.clip(bw, 0, 8) / 2) / np.sqrt(2.0)
     rho = np.sqrt(ddx[win] ** 2 + ddy[win] ** 2)
+    # The centroid's error is the sum of (x - c) times the odd part of the
+    # noise, so the odd part seen in the window measures the noise this shadow
+    # carries (8-bit steps in its dark core, glare, JPEG), whatever the noise
+    # model says. A reflected pixel is interpolated between four, which
+    # lowers its variance by w.
+    fx, fy = (2 * cx) % 1.0, (2 * cy) % 1.0
+    w = ((1 - fx) ** 2 + fx ** 2) * ((1 - fy) ** 2 + fy ** 2)
+    own2 = opt.noise_kappa * float((rho * rho * 4 * odd * odd).sum()) / (1 + w) / 2 / V**2
+    sigma2 = max(sigma2, own2)
     asym = float((rho * np.maximum(np.abs(odd) - 3 * s_odd, 0.0)).sum() / V)
     if asym > 3 * np.sqrt(sigma2) and asym > 0.02:
         clutter = True
