@@ -6,7 +6,7 @@ import numpy as np
 
 from conecal.calib.camera import Camera
 from conecal.calib.candidate import Candidate
-from conecal.calib.neighbours import by_neighbours
+from conecal.calib.neighbours import by_neighbours, jumps, predicted
 from conecal.calib.phantom import describe_phantom
 from conecal.geometry import ConeGeometry, rotvec_to_matrix
 from conecal.simulate.carm import grid_phantom
@@ -49,6 +49,24 @@ def test_a_sweep_breaks_a_tie_and_a_shuffled_scan_does_not():
     k = 6
     posed = {j: p for j, p in enumerate(shuffled) if j != k}
     assert by_neighbours(CAM, SHAPE, SHAPE.points, posed, {k: _tie(*shuffled[k])}) == {}
+
+
+def test_a_pose_turned_off_its_sweep_stands_out_and_a_shuffled_scan_has_none():
+    """A frame labelled with the phantom turned by 180 deg about its normal
+    lies far from what its neighbours predict: it is searched again near
+    them. Shuffled, every frame misses alike and none stands out."""
+    rng = np.random.default_rng(5)
+    poses = _sweep(rng)
+    turn = rotvec_to_matrix(np.pi * SHAPE.n)
+    c = SHAPE.points.mean(0)
+    for k in (2, 7):
+        posed = dict(enumerate(poses))
+        R, t = poses[k]
+        posed[k] = (R @ turn, t + R @ c - R @ turn @ c)
+        preds = predicted(CAM, SHAPE, SHAPE.points, posed)
+        assert jumps(CAM, SHAPE, SHAPE.points, posed, preds) == {k}
+    shuffled = dict(enumerate(poses[j] for j in rng.permutation(len(poses))))
+    assert len(jumps(CAM, SHAPE, SHAPE.points, shuffled, predicted(CAM, SHAPE, SHAPE.points, shuffled))) <= 2
 
 
 def test_neighbours_never_choose_wrong_and_keep_ties_when_the_steps_jitter():

@@ -41,6 +41,8 @@ WITHIN = 2.0
 SEPARATION = 3.0
 # two candidates whose projections differ by less than this (px RMS) are one pose
 SAME_PX = 1.0
+# an ok frame this many sweep steps from every neighbour's pose is searched again near them
+JUMP = 2.5
 
 
 def _predict(poses: dict, k: int):
@@ -126,6 +128,22 @@ def predicted(cam, shape: PhantomShape, points: np.ndarray, posed: dict) -> dict
         if pred is not None:
             out[k] = [pred[:2]] + [others[j] for j in sorted(others) if abs(j - k) <= MAX_GAP]
     return out
+
+
+def jumps(cam, shape: PhantomShape, points: np.ndarray, posed: dict, preds: dict, factor: float = JUMP) -> set:
+    """Ok frames farther from every neighbouring frame's pose than ``factor``
+    times the median such distance (one step of the sweep): a frame labelled
+    with the phantom turned jumps off its sweep. ``preds``: from
+    ``predicted`` (its first entry, the interpolation, is not used: one
+    turned frame spoils it for the frames beside it). ``posed``: frame ->
+    (R, t). An unordered scan's misses are all large, so few of its frames
+    stand out."""
+    perms = _relabellings(shape)
+    miss = {k: min(_miss(cam, points, perms, *posed[k], p) for p in preds[k][1:]) for k in preds}
+    if len(miss) < MIN_SAMPLES:
+        return set()
+    step = float(np.median(list(miss.values())))
+    return {k for k, v in miss.items() if v > factor * step}
 
 
 def same_pose(cam, shape: PhantomShape, points: np.ndarray, a: Candidate, b: Candidate) -> bool:

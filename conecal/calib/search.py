@@ -79,11 +79,13 @@ def _polish(cam: Camera, shape: PhantomShape, xy: np.ndarray, cand: Candidate, g
     return Candidate(det, sph, R, t, rms, cand.how, cand.lattice_map, unseen_spheres(cam, shape, R, t, sph))
 
 
-def unseen_spheres(cam: Camera, shape: PhantomShape, R, t, sph) -> int:
+def unseen_spheres(cam: Camera, shape: PhantomShape, R, t, sph, xy: np.ndarray | None = None) -> int:
     """Phantom spheres this pose puts well inside the detector, clear of every
     other sphere's shadow, that no detection was assigned to: evidence
     against the pose (a labelling one pitch off predicts a column where the
-    image has none)."""
+    image has none). With the detections ``xy`` (n, 2) px, a sphere with one
+    inside its predicted shadow is seen, only fitted beyond a tight gate (a
+    distortion the model lacks), not missing."""
     pred = cam.project(shape.points @ R.T + t)
     rows, cols = cam.shape
     f = cam.focal_px.mean()
@@ -96,6 +98,8 @@ def unseen_spheres(cam: Camera, shape: PhantomShape, R, t, sph) -> int:
     clear = d.min(1) > 2 * margin if len(pred) > 1 else np.ones(len(pred), bool)
     found = np.zeros(len(pred), bool)
     found[np.asarray(sph, int)] = True
+    if xy is not None and len(xy):
+        found |= np.linalg.norm(pred[:, None] - xy[None], axis=-1).min(1) <= margin / 2
     return int(np.sum(inside & clear & ~found))
 
 
