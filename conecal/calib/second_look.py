@@ -90,8 +90,9 @@ def second_look(b: Bundle, out: list, usable: list, dets: dict, shape, points: n
     and fit within the noise on the spheres it keeps), and the other frames
     of ``usable`` refitted from their neighbours' poses (``_doubted``); ties
     go to ``by_neighbours``. Returns (frames that now have an identity,
-    frames in the bundle that no longer have one, set ambiguous). ``shape``: the PhantomShape searched; ``points``: the
-    phantom (P, 3) mm as the bundle has it; ``opt``: FreeOptions."""
+    frames in the bundle that no longer have one, set ambiguous).
+    ``shape``: the PhantomShape searched; ``points``: the phantom (P, 3) mm
+    as the bundle has it; ``opt``: FreeOptions."""
     pooled = float(np.sqrt(np.mean(np.sum(b.residual_px ** 2, 1))))    # 2-D RMS, px
     gate = max(0.5, opt.outlier_factor * pooled)
     cam, dist = _frame_model(b)
