@@ -20,7 +20,7 @@ from .frame import ROUND_ANISOTROPY, Blob, DetectOptions, chord_like, detect_blo
 from .noise import NoiseField
 from .background import fit_profile, structured
 from .overlap import components, disc_misfit, fit_group, group_box, groups_of, joint_sigma, render_box
-from .split import peaks_in, split
+from .split import is_pair, peaks_in, split, unsplit_pair
 
 # the cone-beam shadow's centroid and the model circle's centre differ by
 # ~0.02 px; a larger disagreement is the neighbours' models' error
@@ -165,15 +165,26 @@ def measure_crowded(a: np.ndarray, kept: list[Blob], merged: list[Blob], opt: De
     clutter (they carry the flag into the joint fit)."""
     R1, mu1 = _typical(kept, opt)
     seeds = list(seeds)
-    parts, gone, singles = [], set(), []
+    parts, gone, singles, unsplit = [], set(), [], []
     for m in list(merged) + list(deep):
         near = _neighbours(m, [*kept, *merged, *deep, *around], peaks, opt, 1.5 * m.radius + 2, 1.2 * R1)
         found = split(a, m, R1, mu1, opt.blur_px, noise.at(m.x, m.y), opt.noise_kappa, near, invalid, peaks)
         if found is None:
+            if any(m is d for d in deep) and is_pair(m, R1, mu1, opt.blur_px):
+                # two shadows nearly on top of each other that no split separates
+                # (an 8-bit log display deepens their overlap beyond a sum of
+                # spheres): one marker between them, said to be one
+                pair = unsplit_pair(m, opt.blur_px)
+                kept = [pair if b is m else b for b in kept]
+                m = pair
+                unsplit.append(pair)
             # (a deep blob is kept as measured alone: it is its own single)
             one = m if _one_sphere(m, kept) else \
                 None if any(m is d for d in deep) else _one_on_structure(a, m, kept, opt, noise.at(m.x, m.y), invalid,
                                                                          near, peaks)
+            if one is m and not any(m is p for p in unsplit) and is_pair(m, R1, mu1, opt.blur_px):
+                one = unsplit_pair(m, opt.blur_px)   # (a pair taken for one stretched sphere)
+                unsplit.append(one)
             if one is not None:
                 singles.append(one)
             continue
@@ -319,6 +330,11 @@ def measure_crowded(a: np.ndarray, kept: list[Blob], merged: list[Blob], opt: De
             near = [g[j] for j in np.argsort(d) if j != n_i and d[j] < touch[j]][:_LOCAL_NEIGHBOURS]
             measure([i] + near, only=i)
     out = [b for i, b in enumerate(out) if b is not None and i not in new]
+    # (a pair measured again with its neighbours keeps what its elongation said)
+    for p in unsplit:
+        near = [n for n, b in enumerate(out) if np.hypot(b.x - p.x, b.y - p.y) < 0.5 * p.radius]
+        for n in near:
+            out[n] = replace(out[n], sigma=max(out[n].sigma, p.sigma), flags=sorted(set(out[n].flags) | {"overlap"}))
     return [_beside_edge(a, b, opt, noise.at(b.x, b.y), invalid, _neighbours(b, out, peaks, opt))
             if "overlap" not in b.flags
             else b for b in out]

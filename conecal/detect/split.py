@@ -18,6 +18,8 @@ blob to within twice the pixel noise. Units: px, attenuation.
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import cv2
 import numpy as np
 
@@ -83,6 +85,34 @@ def split(a: np.ndarray, m, R1: float, mu1, blur: float, noise: float, kappa: fl
         if len(start) < 2:
             return None
     return None
+
+
+def _moments(m, blur: float) -> tuple[float, float]:
+    """Blob ``m``'s principal second moments (px^2, major then minor), from
+    its radius and anisotropy as :func:`conecal.detect.frame.refine` made them."""
+    trace = m.radius**2 / 2.5 + 2 * blur**2 + 1 / 6
+    minor = trace / (1 + m.anisotropy**2)
+    return trace - minor, minor
+
+
+def is_pair(m, R1: float, mu1, blur: float) -> bool:
+    """Whether deep blob ``m`` is two of the frame's spheres (radius ``R1``,
+    contrast ``mu1``; blur ``blur`` px) nearly on top of each other: across its long axis as
+    narrow as one (0.75-1.3x its second moment), holding 1.5-2.8 times one's
+    attenuation. A phantom's larger ball is as wide across as along."""
+    if mu1 is None:
+        return False
+    one = (R1**2 / 2.5 + 2 * blur**2 + 1 / 6) / 2
+    return 0.75 <= _moments(m, blur)[1] / one <= 1.3 and 1.5 <= m.mu_px * m.radius**3 / (mu1 * R1**3) <= 2.8
+
+
+def unsplit_pair(m, blur: float):
+    """Blob ``m``, the shadow of two spheres nearly on top of each other,
+    flagged overlap, its sigma at least the half-separation h its elongation
+    shows (a pair 2h apart along x has second moments c + h^2 and c)."""
+    major, minor = _moments(m, blur)
+    h = float(np.sqrt(max(major - minor, 0.0)))
+    return replace(m, sigma=float(np.hypot(m.sigma, h)), flags=sorted(set(m.flags) | {"overlap"}))
 
 
 def _plausible(sph: np.ndarray, R1: float, mu1) -> np.ndarray:
