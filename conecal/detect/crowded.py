@@ -17,7 +17,6 @@ from dataclasses import replace
 import numpy as np
 
 from .frame import ROUND_ANISOTROPY, Blob, DetectOptions, chord_like, detect_blobs, refine, window_reach
-from .noise import NoiseField
 from .background import fit_profile, structured
 from .overlap import components, disc_misfit, fit_group, group_box, groups_of, joint_sigma, render_box
 from .split import is_pair, peaks_in, split, unsplit_pair
@@ -82,7 +81,7 @@ def detect_frame(a: np.ndarray, opt: DetectOptions) -> list[Blob]:
     # a misshapen clutter blob is kept only if removing an edge's background beside
     # it leaves a clean sphere shadow, away from every marker already found
     for b in spoilt:
-        b2 = _beside_edge(a, b, opt, noise.at(b.x, b.y), invalid, _neighbours(b, out + spoilt, peaks, opt))
+        b2 = _beside_edge(a, b, opt, noise, invalid, _neighbours(b, out + spoilt, peaks, opt))
         if (b2 is not b and b2.anisotropy <= opt.max_anisotropy
                 and all(np.hypot(b2.x - o.x, b2.y - o.y) > 0.8 * max(o.radius, b2.radius) for o in out)):
             out.append(b2)
@@ -153,7 +152,7 @@ def _unearned(a, sph: np.ndarray, idx: list, box, opt: DetectOptions, noise: flo
     return worst if worst_r < 0.3 else None
 
 
-def measure_crowded(a: np.ndarray, kept: list[Blob], merged: list[Blob], opt: DetectOptions, noise: NoiseField,
+def measure_crowded(a: np.ndarray, kept: list[Blob], merged: list[Blob], opt: DetectOptions, noise: float,
                     invalid=None, peaks=(), seeds=(), deep=(), around=(), disturbed=()) -> list[Blob]:
     """``kept`` with touching shadows re-measured together, merged blobs
     split, and the shadows at ``seeds`` (x, y: peaks a neighbour spoilt)
@@ -168,7 +167,7 @@ def measure_crowded(a: np.ndarray, kept: list[Blob], merged: list[Blob], opt: De
     parts, gone, singles, unsplit = [], set(), [], []
     for m in list(merged) + list(deep):
         near = _neighbours(m, [*kept, *merged, *deep, *around], peaks, opt, 1.5 * m.radius + 2, 1.2 * R1)
-        found = split(a, m, R1, mu1, opt.blur_px, noise.at(m.x, m.y), opt.noise_kappa, near, invalid, peaks)
+        found = split(a, m, R1, mu1, opt.blur_px, noise, opt.noise_kappa, near, invalid, peaks)
         if found is None:
             if any(m is d for d in deep) and is_pair(m, R1, mu1, opt.blur_px):
                 # two shadows nearly on top of each other that no split separates
@@ -180,8 +179,7 @@ def measure_crowded(a: np.ndarray, kept: list[Blob], merged: list[Blob], opt: De
                 unsplit.append(pair)
             # (a deep blob is kept as measured alone: it is its own single)
             one = m if _one_sphere(m, kept) else \
-                None if any(m is d for d in deep) else _one_on_structure(a, m, kept, opt, noise.at(m.x, m.y), invalid,
-                                                                         near, peaks)
+                None if any(m is d for d in deep) else _one_on_structure(a, m, kept, opt, noise, invalid, near, peaks)
             if one is m and not any(m is p for p in unsplit) and is_pair(m, R1, mu1, opt.blur_px):
                 one = unsplit_pair(m, opt.blur_px)   # (a pair taken for one stretched sphere)
                 unsplit.append(one)
@@ -229,7 +227,6 @@ def measure_crowded(a: np.ndarray, kept: list[Blob], merged: list[Blob], opt: De
         members = [blobs[i] for i in g]
         s0 = np.array([[b.x, b.y, b.radius, b.mu_px] for b in members])
         gx, gy = s0[:, 0].mean(), s0[:, 1].mean()
-        nz = noise.at(gx, gy)
         reach = np.max(np.hypot(s0[:, 0] - gx, s0[:, 1] - gy) + s0[:, 2]) + 6 * opt.blur_px + 10
         others = [(b.x, b.y, b.radius) for j, b in enumerate(blobs)
                   if j not in g and (b.x - gx) ** 2 + (b.y - gy) ** 2 < (reach + 3 * b.radius) ** 2]
@@ -240,8 +237,8 @@ def measure_crowded(a: np.ndarray, kept: list[Blob], merged: list[Blob], opt: De
         # measured alone was disturbed: in a plain crowd the neighbours' own
         # misfit reads as structure and the profile takes it up)
         if _small(g, s0) and any("clutter" in blobs[i].flags for i in g) \
-                and structured(a, gx, gy, ext, opt.blur_px, nz, invalid, others):
-            prof = fit_profile(a, s0, opt.blur_px, nz, invalid, others)
+                and structured(a, gx, gy, ext, opt.blur_px, noise, invalid, others):
+            prof = fit_profile(a, s0, opt.blur_px, noise, invalid, others)
             if prof is not None:
                 (pc0, pq0, pc1, pq1), bg, s0 = prof
                 ag = a.copy()
@@ -252,7 +249,7 @@ def measure_crowded(a: np.ndarray, kept: list[Blob], merged: list[Blob], opt: De
         quad = max(c1 - c0, q1 - q0) > _QUADRATIC_SPAN * np.mean(s0[:, 2])
 
         def refit(start, keep_n):
-            return fit_group(ag, start[keep_n], opt.blur_px, nz, others, invalid, quadratic=quad) if keep_n else None
+            return fit_group(ag, start[keep_n], opt.blur_px, noise, others, invalid, quadratic=quad) if keep_n else None
 
         def dropped(g, gone_n):
             """``g`` without its members at positions ``gone_n``, written as not had."""
@@ -271,7 +268,7 @@ def measure_crowded(a: np.ndarray, kept: list[Blob], merged: list[Blob], opt: De
                     break
         # a member never measured alone must earn its place in the joint fit
         while fit is not None and any(i in trial for i in g):
-            drop = _unearned(ag, fit[1], [n for n, i in enumerate(g) if i in trial], fit[0], opt, nz, others,
+            drop = _unearned(ag, fit[1], [n for n, i in enumerate(g) if i in trial], fit[0], opt, noise, others,
                              invalid, fit[4], R1, mu1, quad)
             if drop is None:
                 break
@@ -301,7 +298,7 @@ def measure_crowded(a: np.ndarray, kept: list[Blob], merged: list[Blob], opt: De
                 if only is not None and i != only:
                     continue
                 work[q0:q1, c0:c1] = ag[q0:q1, c0:c1] - (total - models[n_i])
-                writes[i] = _member(work, blobs[i], sph[n_i], sig[n_i], opt, nz, invalid, others, i in new)
+                writes[i] = _member(work, blobs[i], sph[n_i], sig[n_i], opt, noise, invalid, others, i in new)
         for i, (b, measured) in writes.items():
             if only is None or i == only:
                 out[i] = b
@@ -315,7 +312,7 @@ def measure_crowded(a: np.ndarray, kept: list[Blob], merged: list[Blob], opt: De
         gx, gy = s0[:, 0].mean(), s0[:, 1].mean()
         ext = float(np.max(np.hypot(s0[:, 0] - gx, s0[:, 1] - gy) + s0[:, 2]))
         mask = [(b.x, b.y, b.radius) for b in blobs if (b.x - gx) ** 2 + (b.y - gy) ** 2 < (ext + 4 * R1) ** 2]
-        return structured(a, gx, gy, ext / 3, opt.blur_px, noise.at(gx, gy), invalid, mask)
+        return structured(a, gx, gy, ext / 3, opt.blur_px, noise, invalid, mask)
 
     for g in groups_of(blobs, opt.blur_px):
         s0 = np.array([[blobs[i].x, blobs[i].y, blobs[i].radius] for i in g])
@@ -335,8 +332,7 @@ def measure_crowded(a: np.ndarray, kept: list[Blob], merged: list[Blob], opt: De
         near = [n for n, b in enumerate(out) if np.hypot(b.x - p.x, b.y - p.y) < 0.5 * p.radius]
         for n in near:
             out[n] = replace(out[n], sigma=max(out[n].sigma, p.sigma), flags=sorted(set(out[n].flags) | {"overlap"}))
-    return [_beside_edge(a, b, opt, noise.at(b.x, b.y), invalid, _neighbours(b, out, peaks, opt))
-            if "overlap" not in b.flags
+    return [_beside_edge(a, b, opt, noise, invalid, _neighbours(b, out, peaks, opt)) if "overlap" not in b.flags
             else b for b in out]
 
 

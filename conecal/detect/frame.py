@@ -34,7 +34,7 @@ import cv2
 import numpy as np
 
 from . import kernels
-from .noise import noise_field, noise_pixel, noise_small
+from .noise import noise_pixel, noise_small
 from ..stats import mad_sigma
 
 
@@ -375,8 +375,8 @@ def detect_blobs(a: np.ndarray, opt: DetectOptions):
     """Sphere-like shadows in attenuation frame ``a``, each measured alone
     (not yet filtered by contrast): (kept blobs, blobs rejected as elongated
     that may be merged shadows, clutter-flagged blobs rejected as misshapen
-    that may be spheres beside an edge, the frame's noise field
-    (:class:`conecal.detect.noise.NoiseField`), the invalid-pixel mask or None, every candidate peak (x, y), and the peaks
+    that may be spheres beside an edge, the frame's noise sigma, the
+    invalid-pixel mask or None, every candidate peak (x, y), and the peaks
     strong enough to be a sphere's: at least ``_SEED_STRENGTH`` of the
     median peak of the shadows measured alone unflagged). :func:`conecal.detect.crowded.detect_frame` goes on to
     measure touching shadows together.
@@ -402,7 +402,7 @@ def detect_blobs(a: np.ndarray, opt: DetectOptions):
         # noisier than the frame the scan's noise was measured on (a frame of
         # another dose or gain): every shadow there read as clutter
         pixel = noise_pixel(a)
-    noise = noise_field(a, max(noise, pixel))
+    noise = max(noise, pixel)
     r_guess = opt.diameter_px[0] / 2 if opt.diameter_px[1] / opt.diameter_px[0] < 1.6 else np.mean(opt.diameter_px) / 2
     blobs: list[Blob] = []
     rough = [(cx, cy, opt.diameter_px[0] / 2) for cx, cy, _ in cands]
@@ -418,13 +418,13 @@ def detect_blobs(a: np.ndarray, opt: DetectOptions):
                   and (o[0] - cx) ** 2 + (o[1] - cy) ** 2 < (4 * opt.diameter_px[1]) ** 2]
         others = [o for o in others if not any((o[0] - b.x) ** 2 + (o[1] - b.y) ** 2 < (0.8 * b.radius) ** 2 for b in blobs)] + \
                  [(b.x, b.y, b.radius) for b in blobs]
-        b = refine(a, cx, cy, r_guess, opt, others, noise.at(cx, cy), invalid)
+        b = refine(a, cx, cy, r_guess, opt, others, noise, invalid)
         if b is None and h > 3 * opt.threshold and 2 * r_guess <= opt.diameter_px[1]:
             # a strong peak with no shadow of the expected size: the background
             # ring may lie inside a larger shadow (a big ball whose core an
             # 8-bit display flattens); once more, twice as wide, kept when it
             # is that: larger and round (not a blob over a crowd)
-            b = refine(a, cx, cy, 2 * r_guess, opt, others, noise.at(cx, cy), invalid)
+            b = refine(a, cx, cy, 2 * r_guess, opt, others, noise, invalid)
             if b is not None and (b.radius < 1.3 * r_guess or b.anisotropy > ROUND_ANISOTROPY):
                 b = None
         if b is None and h > 3 * opt.threshold:
@@ -446,7 +446,7 @@ def detect_blobs(a: np.ndarray, opt: DetectOptions):
     for cx, cy, _ in ridges:
         if any((cx - b.x) ** 2 + (cy - b.y) ** 2 < b.radius**2 for b in blobs + merged):
             continue
-        b = refine(a, cx, cy, r_guess, opt, [(o.x, o.y, o.radius) for o in blobs], noise.at(cx, cy), invalid)
+        b = refine(a, cx, cy, r_guess, opt, [(o.x, o.y, o.radius) for o in blobs], noise, invalid)
         # (clutter allowed: the neighbours that make a cluster disturb its background)
         if b is not None and b.snr >= opt.min_snr and b.anisotropy < 3.0 and "truncated" not in b.flags:
             merged.append(b)   # never a marker by itself: split into spheres or dropped

@@ -10,11 +10,9 @@ correlation factor kappa a centroid's variance is multiplied by
 from __future__ import annotations
 
 import functools
-from dataclasses import dataclass
 
 import cv2
 import numpy as np
-from scipy import stats
 
 from ..stats import difference_sigma, mad_sigma
 
@@ -96,72 +94,3 @@ def noise_pixel(img: np.ndarray, size: int = 7) -> float:
     a = np.ascontiguousarray(img[::2, ::2] if min(img.shape) > 256 else img, dtype=np.float32)
     d = (a - cv2.blur(a, (size, size), borderType=cv2.BORDER_REPLICATE)).ravel()
     return float(mad_sigma(d)) / np.sqrt(1 - 1 / size**2) + 1e-7
-
-
-@dataclass(frozen=True)
-class NoiseField:
-    """The pixel noise sigma (attenuation) about each point of a frame: the
-    white noise measured in blocks of ``block`` px (``white``, 0 where not
-    measured) times ``kappa_px`` (the frame's pixel noise over its typical
-    white noise: what correlated noise adds), never below the frame's
-    ``level``."""
-
-    level: float
-    white: np.ndarray
-    kappa_px: float
-    block: int
-
-    def at(self, x: float, y: float) -> float:
-        """Noise sigma at pixel (x, y) (column, row)."""
-        i = int(np.clip(y // self.block, 0, self.white.shape[0] - 1))
-        j = int(np.clip(x // self.block, 0, self.white.shape[1] - 1))
-        return max(self.level, self.kappa_px * float(self.white[i, j]))
-
-
-_TRIM = 0.9      # share of a block's neighbour differences kept (the smallest)
-_TRIM_VAR = 0.623   # mean square of a unit normal's |z| below its 90 % quantile
-# d ln sigma / d attenuation: 1/2 for quanta, 1 for additive noise, about 2 for a
-# log display of 8-bit grey (grey noise grows where it is dark, and 1/grey on top)
-_MAX_SLOPE = 2.5
-
-
-def noise_field(img: np.ndarray, level: float, block: int = 32) -> NoiseField:
-    """:class:`NoiseField` of attenuation frame ``img`` at frame level ``level``.
-
-    Transmission noise grows with attenuation (a phantom's body, an
-    intensifier's vignetting): one number for the frame calls every shadow
-    on the dark part clutter. Each block's white noise is the root mean
-    square of the smallest 90 % of its horizontal neighbour differences
-    (every other row), which unlike a median stays smooth on 8-bit steps.
-    Structure (a rod's edge, bone) raises a block's scatter too, so the
-    field is not the blocks' own values but a line through them,
-    ln sigma = c0 + c1 a (a the block's median attenuation; c1 = 1/2 for
-    quanta, 1 for additive noise, about 2 for a log display of 8-bit grey),
-    fitted robustly (Theil-Sen) and held within 0 <= c1 <= 2.5. Blocks with no difference at all
-    (outside the field, clipped) say nothing."""
-    a = np.asarray(img, dtype=np.float32)
-    nb_r, nb_c = a.shape[0] // block, (a.shape[1] - 1) // block
-    flat = NoiseField(level, np.zeros((1, 1)), 1.0, max(a.shape))
-    if nb_r < 3 or nb_c < 3:
-        return flat
-    d = (a[:nb_r * block:2, 1:nb_c * block + 1] - a[:nb_r * block:2, :nb_c * block])
-    d = d.reshape(nb_r, block // 2, nb_c, block).transpose(0, 2, 1, 3).reshape(nb_r, nb_c, -1)
-    z = np.sort(np.abs(d - np.median(d, axis=2, keepdims=True)), axis=2)[..., :int(_TRIM * d.shape[2])]
-    white = np.sqrt(np.mean(z.astype(np.float64) ** 2, axis=2) / _TRIM_VAR / 2)
-    lvl = np.median(a[:nb_r * block, :nb_c * block].reshape(nb_r, block, nb_c, block), axis=(1, 3))
-    # (outside the field or clipped: mostly equal neighbours, no noise to see)
-    live = (white > 0) & (np.mean(d == 0, axis=2) < 0.5)
-    if live.sum() < 9:
-        return flat
-    x, y = lvl[live].astype(np.float64), np.log(white[live])
-    if np.ptp(x) > 0.05:
-        if len(x) > 400:       # Theil-Sen is quadratic in the blocks; 400 say enough
-            pick = np.random.default_rng(0).choice(len(x), 400, replace=False)
-            x, y = x[pick], y[pick]
-        c1 = float(np.clip(stats.theilslopes(y, x)[0], 0.0, _MAX_SLOPE))
-    else:
-        c1 = 0.0
-    c0 = float(np.median(y - c1 * x))
-    model = np.exp(c0 + c1 * lvl)
-    typical = float(np.median(white[live]))
-    return NoiseField(level, model, max(1.0, level / typical) if typical > 0 else 1.0, block)
