@@ -99,9 +99,10 @@ def _moments(m, blur: float) -> tuple[float, float]:
 
 
 def is_pair(m, R1: float, mu1, blur: float) -> bool:
-    """Whether deep blob ``m`` is two of the frame's spheres (radius ``R1``,
-    contrast ``mu1``; blur ``blur`` px) nearly on top of each other: across its long axis as
-    narrow as one (0.75-1.3x its second moment), holding 1.7-2.8 times one's
+    """Whether blob ``m`` (deep, or merged and no split found) is two of the
+    frame's spheres (radius ``R1`` px, contrast ``mu1``; blur ``blur`` px)
+    nearly on top of each other: across its long axis as narrow as one
+    (0.75-1.3x its second moment), holding 1.7-2.8 times one's
     attenuation, and elongated beyond a lone sphere (``_PAIR_ANISOTROPY``).
     A phantom's larger ball is as wide across as along; on an 8-bit log
     display a lone sphere on a thicker body holds up to 1.9x the attenuation
