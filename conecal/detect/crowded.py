@@ -169,20 +169,19 @@ def measure_crowded(a: np.ndarray, kept: list[Blob], merged: list[Blob], opt: De
         near = _neighbours(m, [*kept, *merged, *deep, *around], peaks, opt, 1.5 * m.radius + 2, 1.2 * R1)
         found = split(a, m, R1, mu1, opt.blur_px, noise, opt.noise_kappa, near, invalid, peaks)
         if found is None:
-            if any(m is d for d in deep) and is_pair(m, R1, mu1, opt.blur_px):
-                # two shadows nearly on top of each other that no split separates
-                # (an 8-bit log display deepens their overlap beyond a sum of
-                # spheres): one marker between them, said to be one
-                pair = unsplit_pair(m, opt.blur_px)
+            is_deep = any(m is d for d in deep)
+            # two shadows nearly on top of each other that no split separates
+            # (an 8-bit log display deepens their overlap beyond a sum of
+            # spheres): one marker between them, said to be one
+            pair = unsplit_pair(m, opt.blur_px) if is_pair(m, R1, mu1, opt.blur_px) else None
+            if pair is not None and is_deep:
                 kept = [pair if b is m else b for b in kept]
-                m = pair
-                unsplit.append(pair)
             # (a deep blob is kept as measured alone: it is its own single)
             one = m if _one_sphere(m, kept) else \
-                None if any(m is d for d in deep) else _one_on_structure(a, m, kept, opt, noise, invalid, near, peaks)
-            if one is m and not any(m is p for p in unsplit) and is_pair(m, R1, mu1, opt.blur_px):
-                one = unsplit_pair(m, opt.blur_px)   # (a pair taken for one stretched sphere)
-                unsplit.append(one)
+                None if is_deep else _one_on_structure(a, m, kept, opt, noise, invalid, near, peaks)
+            if pair is not None and (is_deep or one is m):
+                unsplit.append(pair)
+                one = pair if one is m else one
             if one is not None:
                 singles.append(one)
             continue

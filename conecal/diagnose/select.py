@@ -70,11 +70,11 @@ def _fit(model, cands, select=None, x0=None, exact: bool = False):
     # iterations bounded (not the exact polish's, whose differences count as
     # evaluations): at 100 rather than 300 evaluations, every verdict and
     # number of the form-variant benchmark is unchanged and diagnose takes
-    # half the time (benchmarks/RESULTS.md, 2026-11-27).
-    # The exact path (a fit-pose result, the final polish) differences every
-    # column at every step; at 1e-8 it crept on for ~65 steps a fit with chi2
-    # moving in the 7th digit. At 1e-6 the arm cases' verdicts, values and
-    # sigmas agree to 5 digits in half the time (benchmarks/RESULTS.md, 2026-11-27).
+    # half the time. The exact path (a fit-pose result, the final polish)
+    # differences every column at every step and crept ~65 steps a fit at
+    # 1e-8 with chi2 in the 7th digit; at 1e-6 the arm cases' verdicts and
+    # values agree to 4-5 digits in 0.64 of the time (benchmarks/RESULTS.md,
+    # 2026-11-27).
     tol = 1e-8 if Jb is not None else 1e-6
     res = least_squares(fun, x0, jac=jac if Jb is not None else "2-point", x_scale=scales, method="lm", xtol=tol, ftol=tol,
                         max_nfev=min(200 * len(x0), 100) if Jb is not None else 200 * len(x0))
