@@ -124,3 +124,39 @@ def test_a_frame_whose_visible_grid_is_symmetric_takes_its_identity_from_the_swe
     U, _, Vt = np.linalg.svd(a.T @ b)
     R = (U @ np.diag([1, 1, np.linalg.det(U @ Vt)]) @ Vt).T
     assert len(p_) == len(truth[4]) and np.abs(a @ R.T - b).max() < 0.05
+
+
+def _helix(n=31, turns=1.25, radius=30.0, length=50.0, removed=(4, 13, 22)):
+    """A helix of ``n`` sphere positions (mm), its axis along y, with the
+    positions ``removed`` (which break its screw and turn symmetries)."""
+    a = np.linspace(0, 2 * np.pi * turns, n)
+    P = np.column_stack([radius * np.cos(a), np.linspace(-length / 2, length / 2, n), radius * np.sin(a)])
+    return np.delete(P, removed, axis=0)
+
+
+def test_a_tied_frame_is_searched_near_its_neighbours_and_the_data_name_it():
+    """Frame 4's tie holds only wrong identifications (a helix's turned
+    labellings can fill the whole search's best votes); searched near the
+    pose frames 3 and 5 predict, the right one explains every detection and
+    wins on the data alone. With no ok neighbour nothing is searched."""
+    from conecal.calib.run import FreeOptions
+    from conecal.calib.second_look import Tie, _searched_near
+
+    points = _helix()
+    shape = describe_phantom(points, np.arange(1, len(points) + 1), radius=1.25)
+    poses = _sweep(np.random.default_rng(3), n=9, step_deg=5.0)
+    k = 4
+    R, t = poses[k]
+    rng = np.random.default_rng(1)
+    order = rng.permutation(len(points))[:23]                 # 23 of 28 seen, in no order
+    xy = CAM.project(points[order] @ R.T + t) + rng.normal(0, 0.05, (23, 2))
+    turned = rotvec_to_matrix([0.0, 0.0, np.pi]) @ R            # a wrong pose, 180 deg about the beam
+    wrong = Candidate(np.arange(18), order[:18], turned, t, 0.1)
+    fr = {"frame": k}
+    posed = {j: p for j, p in enumerate(poses) if j != k}
+    ties = {k: (fr, Tie("two fit alike", [wrong]))}
+    got = list(_searched_near(CAM, None, shape, points, posed, ties, {k: (xy,)}, 0.5, 0.07, FreeOptions()))
+    assert len(got) == 1 and got[0][0] is fr
+    c = got[0][1][0]
+    assert len(c.sph) >= 22 and np.array_equal(c.sph, order[c.det])
+    assert list(_searched_near(CAM, None, shape, points, {}, ties, {k: (xy,)}, 0.5, 0.07, FreeOptions())) == []

@@ -130,6 +130,19 @@ def predicted(cam, shape: PhantomShape, points: np.ndarray, posed: dict) -> dict
     return out
 
 
+def guesses(cam, shape: PhantomShape, points: np.ndarray, posed: dict, frames) -> dict:
+    """frame -> (R, t): each of ``frames``' pose as the ok frames ``posed``
+    (frame -> (R, t)) nearest it predict, labelled alike; a frame with no ok
+    frame within MAX_GAP has none."""
+    posed = _consistent(cam, points, _relabellings(shape), posed)
+    out = {}
+    for k in frames:
+        pred = _predict(posed, k)
+        if pred is not None:
+            out[k] = pred[:2]
+    return out
+
+
 def jumps(cam, shape: PhantomShape, points: np.ndarray, posed: dict, preds: dict, factor: float = JUMP) -> set:
     """Ok frames farther from every neighbouring frame's pose than ``factor``
     times the median such distance (one step of the sweep): a frame labelled

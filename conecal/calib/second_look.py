@@ -30,7 +30,7 @@ import numpy as np
 from ..documents.status import OK, ambiguous
 from .bundle import Bundle
 from .candidate import Candidate, assign, refine_pose
-from .neighbours import by_neighbours, jumps, predicted, same_pose
+from .neighbours import by_neighbours, guesses, jumps, predicted, same_pose
 from .search import search_frame, unseen_spheres
 
 # the statuses a second look may overturn: not a frame with too few markers
@@ -110,8 +110,7 @@ def second_look(b: Bundle, out: list, usable: list, dets: dict, shape, points: n
                                      "explains this frame's markers at the noise floor with the calibrated camera")
             fr["slot"] = None
             lost.append(fr)
-            if verdict:
-                ties[fr["frame"]] = (fr, verdict)
+            ties[fr["frame"]] = (fr, verdict or Tie(fr["status"].detail, []))
         elif not _same(verdict[0], current) or len(verdict[0].sph) > len(current.sph) + 1:
             _identified(fr, *verdict)
             won.append(fr)
@@ -121,9 +120,9 @@ def second_look(b: Bundle, out: list, usable: list, dets: dict, shape, points: n
             continue
         old = [res.best, *res.alternatives] if res.best is not None else []
         verdict = _decide(cam, dist, shape, points, dets[fr["frame"]][0], old, gate, pooled, opt)
-        if isinstance(verdict, Tie):
-            ties[fr["frame"]] = (fr, verdict)
-        elif verdict is not None:
+        if verdict is None or isinstance(verdict, Tie):
+            ties[fr["frame"]] = (fr, verdict or Tie(fr["status"].detail, []))
+        else:
             _identified(fr, *verdict)
             won.append(fr)
     for fr, tie in list(_doubted(b, usable, lost + won, dets, shape, points, gate, pooled, opt)):
@@ -134,7 +133,14 @@ def second_look(b: Bundle, out: list, usable: list, dets: dict, shape, points: n
     # (a frame identified anew is where its new identity puts it)
     posed = {fr["frame"]: (b.R[fr["slot"]], b.t[fr["slot"]]) for fr in usable if fr not in lost and fr not in won}
     posed.update({fr["frame"]: (fr["search"].best.R, fr["search"].best.t) for fr in won})
-    chosen = by_neighbours(cam, shape, points, posed, {k: v.cands for k, (_, v) in ties.items()})
+    for fr, verdict in _searched_near(cam, dist, shape, points, posed, ties, dets, gate, pooled, opt):
+        _identified(fr, *verdict)
+        ties.pop(fr["frame"])
+        if fr in lost:
+            lost.remove(fr)
+        won.append(fr)
+        posed[fr["frame"]] = (fr["search"].best.R, fr["search"].best.t)
+    chosen = by_neighbours(cam, shape, points, posed, {k: v.cands for k, (_, v) in ties.items() if len(v.cands) > 1})
     for k, (c, why) in chosen.items():
         fr, verdict = ties[k]
         _identified(fr, c, verdict.convention)
@@ -160,6 +166,35 @@ def _identified(fr: dict, best: Candidate, convention: str) -> None:
     fr["second_look"] = True
     # (the first identification's markers, gathered at its prediction, go with it)
     fr.pop("pairs", None)
+
+
+def _searched_near(cam, dist, shape, points, posed: dict, ties: dict, dets: dict, gate, pooled, opt):
+    """Tied frames of a phantom off a lattice searched again near the pose
+    their ok neighbours predict (the orientations voted within 45 deg of it)
+    and ranked with their tied identifications: the whole search keeps the
+    20 best-voted orientations, and a helix's near-symmetric turns (each
+    fitting the spheres it keeps at the noise) can fill them all, leaving the
+    right one out (an independent generator's helix: three turned
+    identifications of 18 spheres at 0.08-0.10 px tied in a frame whose 23
+    detections the right one explains). The guess only says where to look:
+    the data decide. Yields (frame, (winner, convention)); a tie that stays
+    is updated in ``ties``."""
+    if shape.lattice is not None or not ties:
+        return
+    near = guesses(cam, shape, points, posed, ties)
+    for k, guess in near.items():
+        fr, tie = ties[k]
+        xy = dist.undistort(dets[k][0]) if dist is not None else dets[k][0]
+        found = search_frame(cam, shape, xy, guess, opt.search)
+        new = [c for c in [found.best, *found.alternatives] if c is not None]
+        if not new:
+            continue
+        verdict = _rank(cam, shape, points, xy, tie.cands + new, gate, pooled, opt, tie.convention)
+        if isinstance(verdict, Tie):
+            ties[k] = (fr, verdict)
+            fr["status"] = ambiguous("ambiguous_identity", verdict.sentence)
+        elif verdict is not None:
+            yield fr, verdict
 
 
 def _decide(cam, dist, shape, points, xy, old: list, gate: float, pooled: float, opt):
