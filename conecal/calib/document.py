@@ -141,6 +141,7 @@ def free_document(res: FreeResult, opt: FreeOptions, header: dict) -> dict:
     geo = b.camera.geometry().to_dict()
     doc = {**header, "motion": "free", **geo, "axes": [], "intrinsics": intr, "distortion": dist,
            "gauge": GAUGE, "distortion_choice": res.choice, "phantom_refinement": _refinement(res),
+           "marker_sigma_scale": res.sigma_scales,
            "phantom": {"planar": bool(res.shape.planar), "lattice": res.shape.lattice is not None,
                        "symmetries": len(res.shape.symmetries)},
            "units": {"t": "mm", "R": "rotation matrix, P_lab = R p_phantom + t", "rms_px": "px",

@@ -18,7 +18,7 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -70,13 +70,58 @@ class FreeResult:
     fits: dict            # family name -> bundle on the final frames
     refinement: dict | None = None   # the held-out test of refining the phantom
     pinhole: Bundle | None = None    # no distortion, the phantom as its file says (rms_px_pinhole)
+    # flag class -> {"factor": detect's sigma scaled by, "markers": n} (empty: not rescaled)
+    sigma_scales: dict = field(default_factory=dict)
 
 
 def _detections(frame: dict):
+    """(centres (n, 2) px, detect's sigma (n,) px, flag class (n,): the
+    marker's flags joined, 'unflagged' for none)."""
     ms = frame["markers"]
     xy = np.array([[m["x"], m["y"]] for m in ms], float).reshape(-1, 2)
     sig = np.array([m.get("sigma") or 0.05 for m in ms], float)
-    return xy, np.maximum(sig, 1e-3)
+    cls = np.array([",".join(sorted(m.get("flags") or [])) or "unflagged" for m in ms], dtype=object)
+    return xy, np.maximum(sig, 1e-3), cls
+
+
+# a flag class's sigma is rescaled only from this many of its markers, and
+# only when its residuals' scale differs from the scan's by more than this
+# factor (the median of n chi-square(2) values scatters by ~1.7 / sqrt(n))
+_CLASS_MIN = 20
+_CLASS_DIFFERS = 1.25
+
+
+def _class_scales(b: Bundle, obs: Observations, usable: list, dets: dict) -> dict:
+    """Each flag class's sigma factor, from the bundle's own residuals: the
+    median of (|r| / sigma)^2 over the class's markers against the median
+    over all (a robust variance component per class: detect's sigma may be
+    right for separated shadows and several times too small for overlapping
+    ones). Classes with fewer than _CLASS_MIN markers keep 1."""
+    cls = np.concatenate([dets[fr["frame"]][2][np.asarray(fr["pairs"][0], int)] for fr in usable
+                          if fr.get("slot") is not None])
+    sig = np.concatenate([dets[fr["frame"]][1][np.asarray(fr["pairs"][0], int)] for fr in usable
+                          if fr.get("slot") is not None])
+    if len(cls) != len(obs) or not np.array_equal(sig, obs.sigma):
+        return {}      # (not the bundle's rows in its order)
+    z2 = np.sum(b.residual_px ** 2, 1) / obs.sigma ** 2
+    whole = float(np.median(z2))
+    out = {}
+    for c in np.unique(cls):
+        m = cls == c
+        if m.sum() >= _CLASS_MIN and whole > 0:
+            out[str(c)] = {"factor": float(np.sqrt(np.median(z2[m]) / whole)), "markers": int(m.sum())}
+    return out
+
+
+def _rescaled(dets: dict, scales: dict) -> bool:
+    """Each detection's sigma times its flag class's factor, when some class
+    differs from the scan by more than _CLASS_DIFFERS; returns whether."""
+    f = {c: v["factor"] for c, v in scales.items()}
+    if len(f) < 2 or all(1 / _CLASS_DIFFERS <= v <= _CLASS_DIFFERS for v in f.values()):
+        return False
+    for k, (xy, sig, cls) in dets.items():
+        dets[k] = (xy, sig * np.array([f.get(str(c), 1.0) for c in cls]), cls)
+    return True
 
 
 def _guesses(scan):
@@ -103,8 +148,8 @@ def calibrate_free(scan, markers: dict, geometry, opt: FreeOptions = FreeOptions
     order = [int(k) for k in scan.log.frame]
     for n, k in enumerate(order):
         f = by_frame.get(k, {"markers": []})
-        xy, sig = _detections(f)
-        dets[k] = (xy, sig)
+        xy, sig, cls = _detections(f)
+        dets[k] = (xy, sig, cls)
         res = search_frame(cam, shape, xy, guesses[n] if guesses else None, opt.search)
         frames.append({"frame": k, "search": res, "status": res.status})
         if progress:
@@ -116,16 +161,23 @@ def calibrate_free(scan, markers: dict, geometry, opt: FreeOptions = FreeOptions
         raise FitError(f"{len(usable)} of {len(frames)} frames identified; a calibration needs 2 or more "
                        f"(first reason: {reasons[0] if reasons else 'no frames'})")
     fams = FAMILIES if opt.distortion == "auto" else (family_named("none"), family_named(opt.distortion))
+    scales = {}
     for look in range(2):
         final, fits, choice, refinement, pinhole, usable, obs = _solve(fams, cam, usable, dets, shape, radius, opt)
         if look:
             break
+        # fit-pose judges detect's sigma by its own residuals, per flag class
+        scales = _class_scales(final, obs, usable, dets)
+        rescaled = _rescaled(dets, scales)
+        if rescaled:
+            say("marker sigma per flag class, from the residuals: " + ", ".join(
+                f"{c} x{v['factor']:.2f} ({v['markers']})" for c, v in scales.items()))
         # frames the search left ambiguous or got wrong, and frames that leave
         # markers unexplained, searched again with the calibrated camera; the
         # bundle is solved again when an identification changed
         won, lost = second_look(final, [fr for fr in frames if fr not in usable], usable, dets, shape,
                                 final.phantom(shape.points), opt)
-        if not won and not lost:
+        if not won and not lost and not rescaled:
             break
         say(f"second look with the calibrated camera: {len(won)} frame(s) identified anew, "
             f"{len(lost)} no longer unique")
@@ -135,7 +187,8 @@ def calibrate_free(scan, markers: dict, geometry, opt: FreeOptions = FreeOptions
     if opt.distortion == "auto":
         _centred_alternative(final, fits, choice, obs, shape, radius, cam, opt)
     conv = sorted({fr["search"].convention for fr in frames if fr["search"].convention})
-    return FreeResult(final.camera, final, frames, choice, shape, "; ".join(conv), fits, refinement, pinhole)
+    return FreeResult(final.camera, final, frames, choice, shape, "; ".join(conv), fits, refinement, pinhole,
+                      scales if rescaled else {})
 
 
 def _solve(fams, cam, usable, dets, shape, radius, opt: FreeOptions):
@@ -216,7 +269,7 @@ def _observations(usable, dets):
         slots[fr["frame"]] = s
         c = fr.get("pairs") or (fr["search"].best.det, fr["search"].best.sph)
         d, p = c
-        X, S = dets[fr["frame"]]
+        X, S = dets[fr["frame"]][:2]
         slot += [s] * len(d)
         sph += list(p)
         xy.append(X[d])
@@ -240,7 +293,7 @@ def _regather(b: Bundle, obs: Observations, usable, dets, shape, radius, opt: Fr
     found, far = [], np.zeros(len(pts))
     seen = np.zeros(len(pts))
     for s, fr in enumerate(usable):
-        X, S = dets[fr["frame"]]
+        X, S = dets[fr["frame"]][:2]
         pred = b.predict(pts, np.full(len(pts), s), radius)
         p, d = assign(pred, X, gate)
         out = np.linalg.norm(pred[p] - X[d], axis=1) > opt.outlier_factor * scale * S[d]
