@@ -161,7 +161,7 @@ def calibrate_free(scan, markers: dict, geometry, opt: FreeOptions = FreeOptions
         raise FitError(f"{len(usable)} of {len(frames)} frames identified; a calibration needs 2 or more "
                        f"(first reason: {reasons[0] if reasons else 'no frames'})")
     fams = FAMILIES if opt.distortion == "auto" else (family_named("none"), family_named(opt.distortion))
-    scales = {}
+    scales, rescaled = {}, False
     for look in range(2):
         final, fits, choice, refinement, pinhole, usable, obs = _solve(fams, cam, usable, dets, shape, radius, opt)
         if look:
@@ -179,8 +179,9 @@ def calibrate_free(scan, markers: dict, geometry, opt: FreeOptions = FreeOptions
                                 final.phantom(shape.points), opt)
         if not won and not lost and not rescaled:
             break
-        say(f"second look with the calibrated camera: {len(won)} frame(s) identified anew, "
-            f"{len(lost)} no longer unique")
+        if won or lost:
+            say(f"second look with the calibrated camera: {len(won)} frame(s) identified anew, "
+                f"{len(lost)} no longer unique")
         usable = sorted({id(fr): fr for fr in usable + won if fr not in lost}.values(),
                         key=lambda fr: order.index(fr["frame"]))
     _mirrors(final, usable, obs, shape, radius, opt)

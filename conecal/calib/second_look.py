@@ -17,6 +17,8 @@ predict (and, when its pose jumps off the sweep, searched again near
 them): when an identification found that way explains as many detections
 and fits as well or better, the frame is ambiguous (its visible spheres
 admit the phantom turned); an ok frame's identity is never replaced here.
+A tied or unnamed frame of a phantom off a lattice is searched once more
+near the pose its neighbouring frames predict (the data still decide).
 When identifications tie, the neighbouring frames' poses may break the
 tie (``neighbours.py``); otherwise the frame keeps its status. Units: px, mm.
 """
@@ -169,7 +171,8 @@ def _identified(fr: dict, best: Candidate, convention: str) -> None:
 
 
 def _searched_near(cam, dist, shape, points, posed: dict, ties: dict, dets: dict, gate, pooled, opt):
-    """Tied frames of a phantom off a lattice searched again near the pose
+    """Tied frames of a phantom off a lattice, and frames no candidate
+    explains at the noise floor (an empty tie), searched again near the pose
     their ok neighbours predict (the orientations voted within 45 deg of it)
     and ranked with their tied identifications: the whole search keeps the
     20 best-voted orientations, and a helix's near-symmetric turns (each
