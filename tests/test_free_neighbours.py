@@ -160,3 +160,28 @@ def test_a_tied_frame_is_searched_near_its_neighbours_and_the_data_name_it():
     c = got[0][1][0]
     assert len(c.sph) >= 22 and np.array_equal(c.sph, order[c.det])
     assert list(_searched_near(CAM, None, shape, points, {}, ties, {k: (xy,)}, 0.5, 0.07, FreeOptions())) == []
+
+
+def test_a_twin_the_phantoms_symmetry_makes_is_no_rival():
+    """A marked grid keeps one symmetry (its diagonal mirror, seen from
+    behind): the two labellings put every sphere in the same place, so the
+    second look names the frame (by the search's convention), where it had
+    called them a tie."""
+    from conecal.calib.neighbours import _relabellings, _twins
+    from conecal.calib.run import FreeOptions
+    from conecal.calib.second_look import Tie, _rank
+    from conecal.calib.search import by_convention
+
+    assert SHAPE.symmetries
+    R, t = _sweep(np.random.default_rng(2))[3]
+    pts = SHAPE.points
+    xy = CAM.project(pts @ R.T + t) + np.random.default_rng(0).normal(0, 0.03, (len(pts), 2))
+    perms = _relabellings(SHAPE)
+    (R0, t0), (R1, t1) = _twins(pts, perms, R, t)[:2]
+    det = np.arange(len(pts))
+    a = Candidate(det, perms[0][det], R0, t0, 0.05)
+    b = Candidate(det, perms[1][det], R1, t1, 0.05)
+    got = _rank(CAM, SHAPE, pts, xy, [a, b], 0.5, 0.05, FreeOptions())
+    assert not isinstance(got, Tie) and got is not None
+    want = by_convention([a, b], SHAPE)
+    assert np.allclose(got[0].R, want.R, atol=1e-3)

@@ -106,6 +106,12 @@ def _conventional(points, perms, shape: PhantomShape, c: Candidate) -> Candidate
     return by_convention(twins, shape)
 
 
+def conventional(shape: PhantomShape, points: np.ndarray, c: Candidate) -> Candidate:
+    """``c`` labelled by the search's convention among the labellings the
+    phantom's symmetry makes identical (its pose moved alike)."""
+    return _conventional(points, _relabellings(shape), shape, c)
+
+
 def _miss(cam, points, perms, R, t, pred) -> float:
     """RMS px between the phantom projected at (R, t) and at the prediction,
     the least over labellings the phantom's symmetry makes identical."""

@@ -32,7 +32,7 @@ import numpy as np
 from ..documents.status import OK, ambiguous
 from .bundle import Bundle
 from .candidate import Candidate, assign, refine_pose
-from .neighbours import by_neighbours, guesses, jumps, predicted, same_pose
+from .neighbours import by_neighbours, conventional, guesses, jumps, predicted, same_pose
 from .search import search_frame, unseen_spheres
 
 # the statuses a second look may overturn: not a frame with too few markers
@@ -232,7 +232,15 @@ def _rank(cam, shape, points, xy, cands: list, gate: float, pooled: float, opt, 
     # a rival is out when it explains fewer spheres, or the same ones by
     # more than mirror_chi2 worse (chi-square in the scan's noise per axis)
     var = (pooled ** 2) / 2
-    tied = [c for c in cands[1:] if c.score >= best.score - 1 and not _same(c, best)
+    # (a candidate the phantom's symmetry relates to the best puts every sphere
+    # in the same place: the same image and calibration, no rival; the best is
+    # labelled by the search's convention among them. An independent
+    # renderer's 6x6 grid with a corner missing: three such twins at one RMS
+    # left 4 of 12 frames ambiguous)
+    twin = [bool(shape.symmetries) and same_pose(cam, shape, points, c, best) for c in cands[1:]]
+    if any(twin):
+        best = conventional(shape, points, best)
+    tied = [c for c, tw in zip(cands[1:], twin) if c.score >= best.score - 1 and not _same(c, best) and not tw
             and len(c.sph) * (c.rms_px ** 2 - best.rms_px ** 2) / var < opt.mirror_chi2]
     if best.rms_px > opt.floor_factor * pooled:
         return None
