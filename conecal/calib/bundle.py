@@ -116,12 +116,16 @@ class Bundle:
             return self.camera
         return self.camera.with_intrinsics(self.camera.intrinsics() + self.offsets[slot])
 
-    def frame_distortion(self, slot: int) -> Distortion | None:
+    def frame_distortion(self, slot: int | None) -> Distortion | None:
+        """Frame ``slot``'s distortion: the shared part with its per-frame
+        terms; ``None``: each per-frame term at its median over the frames
+        (for a frame outside the bundle)."""
         if self.distortion is None or not self.family.per_frame:
             return self.distortion
+        values = np.median(self.per_frame, axis=0) if slot is None else self.per_frame[slot]
         k = list(self.distortion.coefficients)
-        for n, v in zip(self.family.per_frame, self.per_frame[slot]):
-            k[self.distortion.names.index(n)] = v
+        for n, v in zip(self.family.per_frame, values):
+            k[self.distortion.names.index(n)] = float(v)
         return self.distortion.with_coefficients(k)
 
     def predict(self, points: np.ndarray, slot: np.ndarray, radius: float | None = None) -> np.ndarray:

@@ -50,18 +50,6 @@ _MSAC_CAP = 9.0
 _MSAC_MARGIN = 2 * _MSAC_CAP
 
 
-def _frame_model(b: Bundle):
-    """The camera and a distortion for a frame outside the bundle: the shared
-    part, and each per-frame term at its median over the bundle's frames."""
-    dist = b.distortion
-    if dist is not None and b.family.per_frame:
-        k = list(dist.coefficients)
-        for j, n in enumerate(b.family.per_frame):
-            k[dist.names.index(n)] = float(np.median(b.per_frame[:, j]))
-        dist = dist.with_coefficients(k)
-    return b.camera, dist
-
-
 def _refit(cam, points: np.ndarray, xy: np.ndarray, c: Candidate, gate: float) -> Candidate:
     """Candidate ``c`` refitted on undistorted detections ``xy`` with the
     calibrated camera, its spheres re-assigned within ``gate`` px."""
@@ -97,7 +85,7 @@ def second_look(b: Bundle, out: list, usable: list, dets: dict, shape, points: n
     as the bundle has it; ``opt``: FreeOptions."""
     pooled = float(np.sqrt(np.mean(np.sum(b.residual_px ** 2, 1))))    # 2-D RMS, px
     gate = max(0.5, opt.outlier_factor * pooled)
-    cam, dist = _frame_model(b)
+    cam, dist = b.camera, b.frame_distortion(None)
     won, lost, ties = [], [], {}
     for fr in usable:
         s = fr["slot"]
