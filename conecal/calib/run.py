@@ -97,11 +97,8 @@ def _class_scales(b: Bundle, obs: Observations, usable: list, dets: dict) -> dic
     over all (a robust variance component per class: detect's sigma may be
     right for separated shadows and several times too small for overlapping
     ones). Classes with fewer than _CLASS_MIN markers keep 1."""
-    cls = np.concatenate([dets[fr["frame"]][2][np.asarray(fr["pairs"][0], int)] for fr in usable
-                          if fr.get("slot") is not None])
-    sig = np.concatenate([dets[fr["frame"]][1][np.asarray(fr["pairs"][0], int)] for fr in usable
-                          if fr.get("slot") is not None])
-    if len(cls) != len(obs) or not np.array_equal(sig, obs.sigma):
+    cls = _gather(usable, dets, 2)
+    if len(cls) != len(obs) or not np.array_equal(_gather(usable, dets, 1), obs.sigma):
         return {}      # (not the bundle's rows in its order)
     z2 = np.sum(b.residual_px ** 2, 1) / obs.sigma ** 2
     whole = float(np.median(z2))
@@ -263,19 +260,22 @@ def _fit_families(fams, cam, usable, dets, shape, radius, opt):
     return obs, fits, kept
 
 
+def _pairs(fr: dict):
+    """A frame's (detections, spheres) as the bundle takes them."""
+    return fr.get("pairs") or (fr["search"].best.det, fr["search"].best.sph)
+
+
+def _gather(usable, dets, j: int) -> np.ndarray:
+    """Item ``j`` of ``dets`` (0 centres, 1 sigma, 2 flag class) of every
+    bundled detection, in the bundle's row order."""
+    return np.concatenate([dets[fr["frame"]][j][np.asarray(_pairs(fr)[0], int)] for fr in usable])
+
+
 def _observations(usable, dets):
-    slot, sph, xy, sig = [], [], [], []
-    slots = {}
-    for s, fr in enumerate(usable):
-        slots[fr["frame"]] = s
-        c = fr.get("pairs") or (fr["search"].best.det, fr["search"].best.sph)
-        d, p = c
-        X, S = dets[fr["frame"]][:2]
-        slot += [s] * len(d)
-        sph += list(p)
-        xy.append(X[d])
-        sig.append(S[d])
-    return (Observations(np.array(slot), np.array(sph), np.vstack(xy), np.concatenate(sig)), slots)
+    slots = {fr["frame"]: s for s, fr in enumerate(usable)}
+    slot = np.concatenate([np.full(len(_pairs(fr)[0]), s) for s, fr in enumerate(usable)])
+    sph = np.concatenate([np.asarray(_pairs(fr)[1], int) for fr in usable])
+    return Observations(slot, sph, _gather(usable, dets, 0), _gather(usable, dets, 1)), slots
 
 
 def _regather(b: Bundle, obs: Observations, usable, dets, shape, radius, opt: FreeOptions):

@@ -159,6 +159,13 @@ _EMPTY = np.zeros(0)
 _NO_MASK = np.zeros((0, 0), np.bool_)
 
 
+def moment_trace(radius: float, blur: float) -> float:
+    """The trace (px^2) of a sphere shadow's second moments: a chord
+    profile's 2/5 R^2, plus the blur's and the pixel's variances per axis
+    (what :func:`refine` inverts for the radius)."""
+    return radius**2 / 2.5 + 2 * blur**2 + 1 / 6
+
+
 def refine(a: np.ndarray, x0: float, y0: float, r0: float, opt: DetectOptions, others=(), noise: float = 0.0,
            invalid: np.ndarray | None = None) -> Blob | None:
     """Sub-pixel centroid of the sphere shadow near (x0, y0) with radius guess r0.

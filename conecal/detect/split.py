@@ -24,6 +24,7 @@ import cv2
 import numpy as np
 
 from .background import fit_profile, structured
+from .frame import moment_trace
 from .overlap import background_basis, disc_misfit, fit_group, group_box, group_model, mask_weights, render_box
 
 # the chi-square fall a new sphere must give, as a fraction of its own model
@@ -93,7 +94,7 @@ def split(a: np.ndarray, m, R1: float, mu1, blur: float, noise: float, kappa: fl
 def _moments(m, blur: float) -> tuple[float, float]:
     """Blob ``m``'s principal second moments (px^2, major then minor), from
     its radius and anisotropy as :func:`conecal.detect.frame.refine` made them."""
-    trace = m.radius**2 / 2.5 + 2 * blur**2 + 1 / 6
+    trace = moment_trace(m.radius, blur)
     minor = trace / (1 + m.anisotropy**2)
     return trace - minor, minor
 
@@ -110,7 +111,7 @@ def is_pair(m, R1: float, mu1, blur: float) -> bool:
     recording lone spheres at the periphery read 1.5-1.56x at 1.11-1.18."""
     if mu1 is None or m.anisotropy < _PAIR_ANISOTROPY:
         return False
-    one = (R1**2 / 2.5 + 2 * blur**2 + 1 / 6) / 2
+    one = moment_trace(R1, blur) / 2
     return 0.75 <= _moments(m, blur)[1] / one <= 1.3 and 1.7 <= m.mu_px * m.radius**3 / (mu1 * R1**3) <= 2.8
 
 
