@@ -191,12 +191,17 @@ def disc_misfit(a: np.ndarray, fit, blur: float, noise: float, mask_out=(), inva
     (R + 2 blur + 1) and on the rest of its patch (inf when under 20
     pixels). On a background with structure of its own (a wall's edge a
     profile follows only roughly) the spheres explain their shadows when the
-    first is no worse than the second."""
+    first is no worse than the second. Quantum noise's variance grows as
+    exp(attenuation), so a residual on a sphere is weighed by exp(-its
+    model's attenuation above the background) (a steel sphere of 0.4 on a
+    tube's wall read 4.1 against 2.4 around it, at a centre 0.08 px off)."""
     box, sph, _, bg, _, _ = fit
     c0, q0, c1, q1 = box
     h, w = q1 - q0, c1 - c0
     wgt = mask_weights(box, mask_out, blur, invalid)
-    z2 = ((a[q0:q1, c0:c1] - group_model(box, sph, bg, blur)) / noise) ** 2 * wgt
+    spheres = render_box(box, sph, blur)
+    z2 = ((a[q0:q1, c0:c1] - spheres - (background_basis(h, w, len(bg) > 3) @ bg).reshape(h, w)) / noise) ** 2 \
+        * wgt * np.exp(-np.clip(spheres, 0.0, 8.0))
     yy, xx = np.mgrid[q0:q1, c0:c1]
     on = np.zeros((h, w), bool)
     for x, y, R, _ in sph:
