@@ -470,8 +470,10 @@ def _edge_model(work, b: Blob, b2: Blob | None, sph: np.ndarray, opt: DetectOpti
     least, and a centroid weighs it by distance): a sphere fitted with a
     plane on the cleaned patch, kept when it fits its disc to 2x the noise,
     or as well as the background model fits the patch around it (or 1.5x
-    as well, up to 12x the noise variance), and it is of a sphere's size near the profile fit's sphere ``sph``; σ from the fit (scaled by its residual and
-    the noise correlation), widened by half its gap to the centroid ``b2``.
+    as well, up to 12x the noise variance), and it is of a sphere's size
+    near the profile fit's sphere ``sph``; σ from the fit (scaled by its
+    residual and the noise correlation), widened by half its gap to the
+    centroid ``b2``.
     Else ``b`` as it was. Flags: clutter (the background was disturbed)."""
     fit = fit_group(work, sph, opt.blur_px, noise, others, invalid)
     if fit is None:
@@ -480,7 +482,8 @@ def _edge_model(work, b: Blob, b2: Blob | None, sph: np.ndarray, opt: DetectOpti
     x, y, R, mu = s2[0]
     s_fit = joint_sigma(sig[0], opt.noise_kappa)
     on, off = disc_misfit(work, fit, opt.blur_px, noise, others, invalid)
-    if (on > max(_EDGE_MODEL_CHI2, off, min(_EDGE_UNDER_SHADOW * off, 3 * _EDGE_MODEL_CHI2)) or not 0.25 * opt.diameter_px[0] <= R <= 0.55 * opt.diameter_px[1]
+    bar = max(_EDGE_MODEL_CHI2, off, min(_EDGE_UNDER_SHADOW * off, 3 * _EDGE_MODEL_CHI2))
+    if (on > bar or not 0.25 * opt.diameter_px[0] <= R <= 0.55 * opt.diameter_px[1]
             or np.hypot(x - sph[0, 0], y - sph[0, 1]) > 0.5 * R or not np.isfinite(s_fit) or s_fit > 0.5):
         return b
     gap2 = (b2.x - x) ** 2 + (b2.y - y) ** 2 if b2 is not None else 0.0

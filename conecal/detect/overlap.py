@@ -173,9 +173,14 @@ def fit_group(a: np.ndarray, spheres: np.ndarray, blur: float, noise: float, mas
 def group_model(box, sph: np.ndarray, bg: np.ndarray, blur: float) -> np.ndarray:
     """A :func:`fit_group` model on its patch ``box``: the spheres (k, 4,
     frame px) plus the background (plane or quadratic coefficients ``bg``)."""
+    return render_box(box, sph, blur) + background_image(box, bg)
+
+
+def background_image(box, bg: np.ndarray) -> np.ndarray:
+    """A :func:`fit_group` background (plane or quadratic coefficients
+    ``bg``) over its patch ``box``."""
     c0, q0, c1, q1 = box
-    h, w = q1 - q0, c1 - c0
-    return render_box(box, sph, blur) + (background_basis(h, w, len(bg) > 3) @ bg).reshape(h, w)
+    return (background_basis(q1 - q0, c1 - c0, len(bg) > 3) @ bg).reshape(q1 - q0, c1 - c0)
 
 
 def joint_sigma(sig: np.ndarray, kappa: float) -> float:
@@ -200,8 +205,8 @@ def disc_misfit(a: np.ndarray, fit, blur: float, noise: float, mask_out=(), inva
     h, w = q1 - q0, c1 - c0
     wgt = mask_weights(box, mask_out, blur, invalid)
     spheres = render_box(box, sph, blur)
-    z2 = ((a[q0:q1, c0:c1] - spheres - (background_basis(h, w, len(bg) > 3) @ bg).reshape(h, w)) / noise) ** 2 \
-        * wgt * np.exp(-np.clip(spheres, 0.0, 8.0))
+    z2 = ((a[q0:q1, c0:c1] - spheres - background_image(box, bg)) / noise) ** 2 * wgt \
+        * np.exp(-np.clip(spheres, 0.0, 8.0))
     yy, xx = np.mgrid[q0:q1, c0:c1]
     on = np.zeros((h, w), bool)
     for x, y, R, _ in sph:
