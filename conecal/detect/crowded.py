@@ -6,7 +6,7 @@ the frame with its neighbours' fitted models removed (:mod:`.overlap`),
 splits a blob that holds several shadows into them (:mod:`.split`), and
 measures candidate peaks a neighbour spoilt together with it. A shadow flagged clutter is
 measured again with the background across an edge beside it (a plate's
-step, a holder's wall: :mod:`.background`) fitted and removed. Units: px,
+step, a holder's wall) fitted and removed (:mod:`.edge`). Units: px,
 attenuation.
 """
 
@@ -18,12 +18,10 @@ import numpy as np
 
 from .frame import ROUND_ANISOTROPY, Blob, DetectOptions, chord_like, detect_blobs, refine, window_reach
 from .background import fit_profile, structured
-from .overlap import components, disc_misfit, fit_group, group_box, groups_of, joint_sigma, render_box
+from .edge import CONE_OFFSET_PX, beside_edge
+from .overlap import components, fit_group, group_box, groups_of, joint_sigma, render_box
 from .split import is_pair, peaks_in, split, unsplit_pair
 
-# the cone-beam shadow's centroid and the model circle's centre differ by
-# ~0.02 px; a larger disagreement is the neighbours' models' error
-_CONE_OFFSET_PX = 0.03
 # A joint model's centre that no centroid confirms (a seed, a split part, or a
 # shadow whose centroid cannot be had beside its neighbours) is off by more
 # than the fit's σ says: 0.4 px RMS per axis for 8-15 px shadows with σ 0.09
@@ -42,15 +40,6 @@ _DEEP_DENSITY = 1.35
 _QUADRATIC_SPAN = 6.0
 # a member of a long chain across a wall is measured with at most this many nearest neighbours
 _LOCAL_NEIGHBOURS = 3
-# a sphere model on a patch whose edge was removed must fit its disc to this chi^2
-# per pixel (in the pixel noise's variance), or as well as the background around it
-# (on a tube's wall: spheres 0.8-4.8 against 2.5-70 around; a diffuse blob 34 against 17)
-_EDGE_MODEL_CHI2 = 4.0
-# ... or by this much more than the background around it, up to 3x that bar (the
-# profile under the shadow is what the pixels beside it pin least: the independent
-# helix's steel spheres where two walls cross read 3.7-7.8 on the disc against 2.4-5.6
-# around, centres 0.1 px from the truth; a diffuse "bone" blob 54-62 against 35-46)
-_EDGE_UNDER_SHADOW = 1.5
 # a blob set aside as merged that holds one sphere's attenuation (0.6-1.4x the
 # frame's) is one shadow, stretched: an image intensifier's periphery reads
 # 1.19 (and one sphere 1.25) on a real C-arm recording; two shadows that far
@@ -86,7 +75,7 @@ def detect_frame(a: np.ndarray, opt: DetectOptions) -> list[Blob]:
     # a misshapen clutter blob is kept only if removing an edge's background beside
     # it leaves a clean sphere shadow, away from every marker already found
     for b in spoilt:
-        b2 = _beside_edge(a, b, opt, noise, invalid, _neighbours(b, out + spoilt, peaks, opt))
+        b2 = beside_edge(a, b, opt, noise, invalid, _neighbours(b, out + spoilt, peaks, opt))
         if (b2 is not b and b2.anisotropy <= opt.max_anisotropy
                 and all(np.hypot(b2.x - o.x, b2.y - o.y) > 0.8 * max(o.radius, b2.radius) for o in out)):
             out.append(b2)
@@ -336,7 +325,7 @@ def measure_crowded(a: np.ndarray, kept: list[Blob], merged: list[Blob], opt: De
         near = [n for n, b in enumerate(out) if np.hypot(b.x - p.x, b.y - p.y) < 0.5 * p.radius]
         for n in near:
             out[n] = replace(out[n], sigma=max(out[n].sigma, p.sigma), flags=sorted(set(out[n].flags) | {"overlap"}))
-    return [_beside_edge(a, b, opt, noise, invalid, _neighbours(b, out, peaks, opt)) if "overlap" not in b.flags
+    return [beside_edge(a, b, opt, noise, invalid, _neighbours(b, out, peaks, opt)) if "overlap" not in b.flags
             else b for b in out]
 
 
@@ -374,7 +363,7 @@ def _one_on_structure(a, m: Blob, kept: list[Blob], opt: DetectOptions, noise: f
     chord profile and :func:`_one_sphere`'s size and attenuation. Else None."""
     if len(peaks_in(m, peaks)) > 1 or "truncated" in m.flags:
         return None
-    b = _beside_edge(a, replace(m, flags=sorted(set(m.flags) | {"clutter"})), opt, noise, invalid, near)
+    b = beside_edge(a, replace(m, flags=sorted(set(m.flags) | {"clutter"})), opt, noise, invalid, near)
     if b.anisotropy > opt.max_anisotropy or not np.isfinite(b.sigma) or not _one_sphere(b, kept):
         return None
     return b
@@ -400,7 +389,7 @@ def _member(work, b0: Blob, sph: np.ndarray, sig: np.ndarray, opt: DetectOptions
     if b is not None and "clutter" in b0.flags and np.hypot(b.x - x_fit, b.y - y_fit) <= 0.5 * sph[2]:
         # an edge's background beside it (its neighbours' models removed):
         # the joint fit's plane did not follow it, so its centre is no check
-        b2 = _beside_edge(work, b, opt, noise, invalid, others)
+        b2 = beside_edge(work, b, opt, noise, invalid, others)
         if b2 is not b:
             b2.flags = sorted(set(b2.flags) | {"overlap"})
             return b2, True
@@ -409,10 +398,10 @@ def _member(work, b0: Blob, sph: np.ndarray, sig: np.ndarray, opt: DetectOptions
         if not np.isfinite(s_fit) or s_fit > 0.5:
             return (None, False) if unmeasured else (b0, False)
         b = replace(b0, x=float(x_fit), y=float(y_fit), radius=float(sph[2]), mu_px=float(sph[3]),
-                    sigma=float(np.sqrt(s_fit**2 + _CONE_OFFSET_PX**2 + (_MODEL_ONLY_FRACTION * sph[2]) ** 2)))
+                    sigma=float(np.sqrt(s_fit**2 + CONE_OFFSET_PX**2 + (_MODEL_ONLY_FRACTION * sph[2]) ** 2)))
     else:
         gap2 = (b.x - x_fit) ** 2 + (b.y - y_fit) ** 2
-        excess = max(gap2 / 2 - b.sigma**2 - s_fit**2 - _CONE_OFFSET_PX**2, 0.0)
+        excess = max(gap2 / 2 - b.sigma**2 - s_fit**2 - CONE_OFFSET_PX**2, 0.0)
         b.sigma = float(np.sqrt(b.sigma**2 + excess))
     b.flags = sorted(set(b.flags) | {"overlap"})
     return b, True
@@ -435,58 +424,3 @@ def _neighbours(b: Blob, blobs: list[Blob], peaks, opt: DetectOptions, inside: f
     return near + [(px, py, r_peak) for px, py in peaks
                    if own < np.hypot(px - b.x, py - b.y) < reach
                    and all(np.hypot(px - o[0], py - o[1]) > 0.8 * o[2] for o in near)]
-
-
-def _beside_edge(a, b: Blob, opt: DetectOptions, noise: float, invalid, others=()) -> Blob:
-    """A shadow flagged clutter measured again with the background across an
-    edge beside it (a plate's step, a tube's wall) fitted and removed, when
-    one is there and the centroid then passes the clutter tests; otherwise
-    ``b`` as it was. ``others``: (x, y, r) of the shadows around it."""
-    if "clutter" not in b.flags and not structured(a, b.x, b.y, b.radius, opt.blur_px, noise, invalid, others):
-        return b
-    fit = fit_profile(a, np.array([[b.x, b.y, b.radius, b.mu_px]]), opt.blur_px, noise, invalid, others)
-    if fit is None:
-        return b
-    (c0, q0, c1, q1), bg, sph = fit
-    x_fit, y_fit = sph[0, :2]
-    work = a.copy()
-    work[q0:q1, c0:c1] -= bg
-    b2 = refine(work, b.x, b.y, b.radius, opt, others, noise, invalid)
-    # (a centroid the removed edge leaves elongated is still disturbed: what the
-    # profile missed under the shadow, weighed by rho^2)
-    if (b2 is None or "clutter" in b2.flags or b2.anisotropy > opt.max_anisotropy
-            or np.hypot(b2.x - b.x, b2.y - b.y) > b.radius):
-        return _edge_model(work, b, b2, sph, opt, noise, invalid, others)
-    gap2 = (b2.x - x_fit) ** 2 + (b2.y - y_fit) ** 2
-    b2.sigma = float(np.sqrt(b2.sigma**2 + max(gap2 / 2 - b2.sigma**2 - _CONE_OFFSET_PX**2, 0.0)))
-    return b2
-
-
-def _edge_model(work, b: Blob, b2: Blob | None, sph: np.ndarray, opt: DetectOptions, noise: float, invalid,
-                others) -> Blob:
-    """The shadow's model centre on the frame with an edge's background
-    removed, when its centroid ``b2`` there is still disturbed or elongated
-    (the edge's profile under the shadow is what the profile fit knows
-    least, and a centroid weighs it by distance): a sphere fitted with a
-    plane on the cleaned patch, kept when it fits its disc to 2x the noise,
-    or as well as the background model fits the patch around it (or 1.5x
-    as well, up to 12x the noise variance), and it is of a sphere's size
-    near the profile fit's sphere ``sph``; σ from the fit (scaled by its
-    residual and the noise correlation), widened by half its gap to the
-    centroid ``b2``.
-    Else ``b`` as it was. Flags: clutter (the background was disturbed)."""
-    fit = fit_group(work, sph, opt.blur_px, noise, others, invalid)
-    if fit is None:
-        return b
-    _, s2, sig, _, chi2, n_pix = fit
-    x, y, R, mu = s2[0]
-    s_fit = joint_sigma(sig[0], opt.noise_kappa)
-    on, off = disc_misfit(work, fit, opt.blur_px, noise, others, invalid)
-    bar = max(_EDGE_MODEL_CHI2, off, min(_EDGE_UNDER_SHADOW * off, 3 * _EDGE_MODEL_CHI2))
-    if (on > bar or not 0.25 * opt.diameter_px[0] <= R <= 0.55 * opt.diameter_px[1]
-            or np.hypot(x - sph[0, 0], y - sph[0, 1]) > 0.5 * R or not np.isfinite(s_fit) or s_fit > 0.5):
-        return b
-    gap2 = (b2.x - x) ** 2 + (b2.y - y) ** 2 if b2 is not None else 0.0
-    return replace(b, x=float(x), y=float(y), radius=float(R), mu_px=float(mu), anisotropy=1.0,
-                   sigma=float(np.sqrt(s_fit**2 + _CONE_OFFSET_PX**2 + gap2 / 2)),
-                   flags=sorted(set(b.flags) | {"clutter"}))
