@@ -243,7 +243,7 @@ def clean_refit(b, obs, truth: dict, mdoc: dict, ok_fr: list, scan, frame_intrin
     sub = replace(sub, xy=np.array([c for c in clean if c is not None], float))
     cb = adjust(b.family, b.camera, sub, scan.phantom.positions, scan.config.markers.diameter / 2, b.R, b.t,
                 start=b, frame_intrinsics=dict(frame_intrinsics))
-    z_pose, err, names, stated = [], [], [], []
+    err, names, stated = [], [], []
     for s in range(len(b.R)):
         for n, d in zip(("rx", "ry", "rz"), matrix_to_rotvec(b.R[s] @ cb.R[s].T)):
             names.append(f"frame{s}_{n}"); err.append(d); stated.append(b.sigma(f"frame{s}_{n}"))

@@ -368,14 +368,10 @@ def test_helix_spheres_on_a_tube_wall_and_a_pair_beside_its_end_are_found_once()
     # the tube's curved wall (plane-fitted anisotropy 1.6-1.7), a pair overlapping by
     # 0.4 of a diameter whose split had soaked up the wall, lost before
     from benchmarks import helix_indep as gen
-    from conecal.detect.noise import noise_correlation, noise_pixel
     frames, truth = gen.make_frames(0, 4)
     r = [t["r_px"] for fr in truth for t in fr]
     for k, ids in ((3, (11, 49)), (0, (26, 45))):
-        img = np.ascontiguousarray(frames[k], np.float32)
-        opt = DetectOptions(diameter_px=(2 * min(r) * 0.9, 2 * max(r) * 1.1), pixel_noise=noise_pixel(img),
-                            noise_kappa=noise_correlation(img))
-        blobs = detect_frame(img, opt)
+        blobs = _helix_detect(frames[k], r)
         for t in truth[k]:
             near = [b for b in blobs if np.hypot(b.x - t["x"], b.y - t["y"]) < 0.5 * t["r_px"]]
             assert len(near) <= 1, (k, t["id"], near)      # no sphere given twice
@@ -391,18 +387,11 @@ def test_lone_spheres_where_a_tubes_walls_cross_are_measured_with_the_walls_remo
     # centroid on the cleaned patch stays elongated (1.26-1.3) and the sphere
     # model misfits its disc 1.2-1.5x the patch around it: all three were lost
     from benchmarks import helix_indep as gen
-    from conecal.detect.noise import noise_correlation, noise_pixel
     frames, truth = gen.make_frames(2, 1)
-    r = [t["r_px"] for t in truth[0]]
-    img = np.ascontiguousarray(frames[0], np.float32)
-    opt = DetectOptions(diameter_px=(2 * min(r) * 0.9, 2 * max(r) * 1.1), pixel_noise=noise_pixel(img),
-                        noise_kappa=noise_correlation(img))
-    blobs = detect_frame(img, opt)
+    blobs = _helix_detect(frames[0], [t["r_px"] for t in truth[0]])
     for t in truth[0]:
         if t["id"] in (20, 28, 40):
-            near = [b for b in blobs if np.hypot(b.x - t["x"], b.y - t["y"]) < 0.5 * t["r_px"]]
-            assert len(near) == 1, (t["id"], near)
-            (b,) = near
+            b = _found_once(blobs, t)
             assert b.sigma < 0.3 and np.hypot(b.x - t["x"], b.y - t["y"]) < 3 * b.sigma, (t["id"], b)
 
 
@@ -411,15 +400,27 @@ def test_three_touching_spheres_on_a_tubes_wall_are_split():
     # of a diameter inside the tube's wall seen end-on. Measured alone their blob
     # took in the wall and read 6.7 spheres' attenuation, over the split's bound
     from benchmarks import helix_indep as gen
-    from conecal.detect.noise import noise_correlation, noise_pixel
     frames, truth = gen.make_frames(2, 8)
-    r = [t["r_px"] for fr in truth for t in fr]       # the scan's shadow sizes
-    img = np.ascontiguousarray(frames[1], np.float32)
-    opt = DetectOptions(diameter_px=(2 * min(r) * 0.9, 2 * max(r) * 1.1), pixel_noise=noise_pixel(img),
-                        noise_kappa=noise_correlation(img))
-    blobs = detect_frame(img, opt)
+    blobs = _helix_detect(frames[1], [t["r_px"] for fr in truth for t in fr])   # the scan's shadow sizes
     for t in truth[1]:
         if t["id"] in (5, 21, 37):
-            near = [b for b in blobs if np.hypot(b.x - t["x"], b.y - t["y"]) < 0.5 * t["r_px"]]
-            assert len(near) == 1, (t["id"], near)
-            assert np.hypot(near[0].x - t["x"], near[0].y - t["y"]) < 0.3, (t["id"], near[0])
+            b = _found_once(blobs, t)
+            assert np.hypot(b.x - t["x"], b.y - t["y"]) < 0.3, (t["id"], b)
+
+
+def _helix_detect(frame, r_px):
+    """detect on one frame of the independent helix (benchmarks/helix_indep.py)
+    with the nominal shadow sizes its radii ``r_px`` span, the noise measured
+    on the frame, as bench_helix.py does."""
+    from conecal.detect.noise import noise_correlation, noise_pixel
+    img = np.ascontiguousarray(frame, np.float32)
+    opt = DetectOptions(diameter_px=(2 * min(r_px) * 0.9, 2 * max(r_px) * 1.1), pixel_noise=noise_pixel(img),
+                        noise_kappa=noise_correlation(img))
+    return detect_frame(img, opt)
+
+
+def _found_once(blobs, t: dict):
+    """The one blob within half a radius of true sphere ``t`` (asserted)."""
+    near = [b for b in blobs if np.hypot(b.x - t["x"], b.y - t["y"]) < 0.5 * t["r_px"]]
+    assert len(near) == 1, (t["id"], near)
+    return near[0]
