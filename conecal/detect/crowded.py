@@ -20,7 +20,7 @@ from .frame import ROUND_ANISOTROPY, Blob, DetectOptions, chord_like, detect_blo
 from .background import fit_profile, structured
 from .edge import CONE_OFFSET_PX, beside_edge
 from .overlap import components, fit_group, group_box, groups_of, joint_sigma, render_box
-from .split import is_pair, peaks_in, split, unsplit_pair
+from .split import hidden_pairs, is_pair, peaks_in, split, unsplit_pair
 
 # A joint model's centre that no centroid confirms (a seed, a split part, or a
 # shadow whose centroid cannot be had beside its neighbours) is off by more
@@ -79,7 +79,7 @@ def detect_frame(a: np.ndarray, opt: DetectOptions) -> list[Blob]:
         if (b2 is not b and b2.anisotropy <= opt.max_anisotropy
                 and all(np.hypot(b2.x - o.x, b2.y - o.y) > 0.8 * max(o.radius, b2.radius) for o in out)):
             out.append(b2)
-    return out
+    return hidden_pairs(a, out, opt.blur_px)
 
 
 def _typical(kept: list[Blob], opt: DetectOptions):
@@ -173,7 +173,8 @@ def measure_crowded(a: np.ndarray, kept: list[Blob], merged: list[Blob], opt: De
             # (a deep blob is kept as measured alone: it is its own single)
             one = m if _one_sphere(m, kept) else \
                 None if is_deep else _one_on_structure(a, m, kept, opt, noise, invalid, near, peaks)
-            if pair is not None and (is_deep or one is m):
+            # (nothing measured alone there: a seed's joint fit measures it, and keeps its sigma)
+            if pair is not None and (is_deep or one is m or one is None):
                 unsplit.append(pair)
                 one = pair if one is m else one
             if one is not None:
