@@ -23,6 +23,7 @@ from dataclasses import replace
 import cv2
 import numpy as np
 
+from ..stats import mad_sigma
 from .background import fit_profile, structured
 from .frame import moment_trace
 from .overlap import background_basis, disc_misfit, fit_group, group_box, group_model, mask_weights, render_box
@@ -174,7 +175,7 @@ def hidden_pairs(a: np.ndarray, blobs: list, blur: float) -> list:
     for _ in range(3):
         line = np.linalg.lstsq(A[keep], dv[keep], rcond=None)[0]
         res = dv - A @ line
-        keep_new = np.abs(res) <= 2.5 * 1.4826 * np.median(np.abs(res - np.median(res))) + 1e-9
+        keep_new = np.abs(res) <= 2.5 * mad_sigma(res) + 1e-9
         if keep_new.sum() < 8:
             break
         keep = keep_new
