@@ -34,6 +34,7 @@ import cv2
 import numpy as np
 
 from . import kernels
+from .chain import chain_like, rough_blob
 from .noise import noise_pixel, noise_small
 from ..stats import mad_sigma
 
@@ -146,6 +147,13 @@ def candidates(a: np.ndarray, opt: DetectOptions, invalid: np.ndarray | None = N
     if with_ridges:
         return out, float(noise_small(small)), ridges
     return out, float(noise_small(small))
+
+
+def _rough_blob(a: np.ndarray, cx: float, cy: float, r: float, blur: float, noise: float, opt: DetectOptions):
+    """A strong peak no window measured, as a rough blob when it may be a chain (:mod:`.chain`), else None."""
+    f = rough_blob(a, cx, cy, r, blur, noise)
+    ok = f is not None and chain_like(f["radius"], f["anisotropy"], opt.diameter_px[1], opt.max_anisotropy)
+    return Blob(**f) if ok else None
 
 
 def small_frame(a: np.ndarray, opt: DetectOptions) -> np.ndarray:
@@ -450,10 +458,14 @@ def detect_blobs(a: np.ndarray, opt: DetectOptions):
                     if "overlap" not in b.flags:
                         b.flags.append("overlap")
     kept, merged = [], []
-    for cx, cy, _ in ridges:
+    for cx, cy, h in ridges:
         if any((cx - b.x) ** 2 + (cy - b.y) ** 2 < b.radius**2 for b in blobs + merged):
             continue
         b = refine(a, cx, cy, r_guess, opt, [(o.x, o.y, o.radius) for o in blobs], noise, invalid)
+        if b is None and h > 3 * opt.threshold:
+            # a chain of touching shadows across a wall seen end-on: no background
+            # ring to be had for one sphere's window; its extent, to be split
+            b = _rough_blob(a, cx, cy, r_guess, opt.blur_px, noise, opt)
         # (clutter allowed: the neighbours that make a cluster disturb its background)
         if b is not None and b.snr >= opt.min_snr and b.anisotropy < 3.0 and "truncated" not in b.flags:
             merged.append(b)   # never a marker by itself: split into spheres or dropped
@@ -475,6 +487,11 @@ def detect_blobs(a: np.ndarray, opt: DetectOptions):
     # annulus): handed on as a spoilt blob of the expected size, unmeasured
     for cx, cy in failed:
         if any((cx - b.x) ** 2 + (cy - b.y) ** 2 < b.radius**2 for b in blobs):
+            continue
+        # (one that is elongated is a chain, to be split like a merged blob)
+        rough = _rough_blob(a, cx, cy, r_guess, opt.blur_px, noise, opt)
+        if rough is not None:
+            merged.append(rough)
             continue
         ix, iy = int(round(cx)), int(round(cy))
         ring = a[max(iy - int(2 * r_guess), 0):iy + int(2 * r_guess) + 1, max(ix - int(2 * r_guess), 0):ix + int(2 * r_guess) + 1]

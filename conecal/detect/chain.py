@@ -1,0 +1,62 @@
+"""A strong peak that no sphere's window could measure, as a rough blob.
+
+Three or four spheres touching in a line on a holder's wall seen end-on
+make one peak whose window holds no background: the wall's band runs
+through it, the background ring fitted across the band lies above the
+chain's ends and the window's second moment comes out negative. What stands
+above half the peak's height over the median of a ring 2.5-3 radii out is
+the chain's extent, which :mod:`conecal.detect.split` fits sphere by sphere.
+Units: px, attenuation.
+"""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+
+
+def rough_blob(a: np.ndarray, cx: float, cy: float, r: float, blur: float, noise: float) -> dict | None:
+    """A :class:`conecal.detect.frame.Blob`'s fields (clutter-flagged, sigma
+    inf) for the connected region about (cx, cy) above half the peak's
+    height, or None.
+    The radius is in :func:`conecal.detect.frame.refine`'s convention (a
+    chord profile's second moment is 2/5 R^2, blur and pixel added), taking
+    the region's moment as 2/3 of the whole shadow's; V likewise as 2/3 of
+    its attenuation (the region holds a chord profile's first 2/3 of radius)."""
+    rows, cols = a.shape
+    L = int(4 * r)
+    ix, iy = int(round(cx)), int(round(cy))
+    c0, c1, q0, q1 = max(ix - L, 0), min(ix + L + 1, cols), max(iy - L, 0), min(iy + L + 1, rows)
+    p = a[q0:q1, c0:c1].astype(np.float64)
+    yy, xx = np.mgrid[q0:q1, c0:c1]
+    d = np.hypot(xx - cx, yy - cy)
+    ring = (d >= 2.5 * r) & (d <= 3 * r)
+    if ring.sum() < 10 or not (c0 <= ix < c1 and q0 <= iy < q1):
+        return None
+    p = p - np.median(p[ring])
+    top = float(p[iy - q0, ix - c0])
+    if top <= 0:
+        return None
+    _, lab = cv2.connectedComponents((p > top / 2).astype(np.uint8))
+    w = np.where(lab == lab[iy - q0, ix - c0], p, 0.0)
+    V = float(w.sum())
+    x, y = float((w * xx).sum() / V), float((w * yy).sum() / V)
+    dx, dy = xx - x, yy - y
+    cxx, cyy, cxy = (w * dx * dx).sum() / V, (w * dy * dy).sum() / V, (w * dx * dy).sum() / V
+    tr, det = cxx + cyy, cxx * cyy - cxy**2
+    disc = np.sqrt(max(tr * tr / 4 - det, 0.0))
+    l1, l2 = tr / 2 + disc, tr / 2 - disc
+    m2 = 1.5 * tr - 2 * blur**2 - 2 / 12
+    if m2 <= 0 or l2 <= 0:
+        return None
+    R = float(np.sqrt(2.5 * m2))
+    return dict(x=x, y=y, radius=R, sigma=float("inf"), mu_px=1.5 * 1.5 * V / (np.pi * R * R) / (2 * R), peak=top,
+                anisotropy=float(np.sqrt(l1 / l2)), flags=["clutter"], snr=top / max(noise, 1e-12))
+
+
+def chain_like(radius: float, anisotropy: float, widest: float, max_anisotropy: float) -> bool:
+    """Whether a rough blob may be a short chain of touching shadows:
+    elongated beyond a sphere (``max_anisotropy``; three in a line read up
+    to 3.8), and no wider than ``widest`` px, two of the largest spheres' radii
+    (a wall or a plate's end is wider)."""
+    return radius <= widest and max_anisotropy < anisotropy < 4.5
