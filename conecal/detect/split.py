@@ -46,6 +46,9 @@ _PAIR_NARROWEST = 0.5
 # (3 of 1515 over 1.3); on log displays no lone sphere did, once the density's
 # drift with the background is taken out (grid 1.09, ball phantom 1.2 at most)
 _HIDDEN_DENSITY = 1.3
+# ... holding at least this many of the frame's spheres' attenuation (its radius
+# cubed, its excess density): a phantom's smaller spheres may read denser
+_HIDDEN_ATTENUATION = 1.4
 # a blob's background level (attenuation) is held when this close to three of
 # the spheres the density's line was fitted on
 _HIDDEN_LEVEL = 0.05
@@ -185,9 +188,8 @@ def hidden_pairs(a: np.ndarray, blobs: list, blur: float) -> list:
     # that level: a plate's thick part under two spheres, on a log display)
     held = np.array([np.sum(np.abs(lv[keep] - v) <= _HIDDEN_LEVEL) >= 3 if f else False for v, f in zip(level, ok)])
     excess = np.where(held, excess, 0.0)
-    # (and holding 1.4+ spheres' attenuation: a phantom's smaller spheres may read denser)
     size = np.array([b.radius for b in blobs])
-    dense = ok & (excess >= _HIDDEN_DENSITY) & (excess * (size / np.median(size)) ** 3 >= 1.4)
+    dense = ok & (excess >= _HIDDEN_DENSITY) & (excess * (size / np.median(size)) ** 3 >= _HIDDEN_ATTENUATION)
     if dense.sum() > _HIDDEN_RARE * len(blobs):
         return blobs
     out = list(blobs)
