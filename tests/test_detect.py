@@ -160,7 +160,7 @@ def test_a_frame_noisier_than_the_scans_reference_measures_its_own_noise():
     from dataclasses import replace
 
     from conecal.detect import DetectOptions, detect_frame
-    from conecal.detect.frame import small_frame
+    from conecal.detect.peaks import small_frame
     from conecal.detect.noise import noise_pixel, noise_small
     from conecal.detect.overlap import render
 
@@ -189,7 +189,7 @@ def test_a_sphere_whose_core_is_darker_than_the_dead_level_is_measured():
     the sphere was lost or flagged truncated. Only regions larger than a
     shadow (and single pixels) are no measurement now; the outside stays so."""
     from conecal.detect import DetectOptions, detect_frame
-    from conecal.detect.frame import invalid_mask
+    from conecal.detect.peaks import invalid_mask
     from conecal.detect.overlap import render
 
     rng = np.random.default_rng(2)

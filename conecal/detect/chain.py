@@ -40,10 +40,8 @@ def rough_blob(a: np.ndarray, cx: float, cy: float, r: float, blur: float, noise
     _, lab = cv2.connectedComponents((p > top / 2).astype(np.uint8))
     w = np.where(lab == lab[iy - q0, ix - c0], p, 0.0)
     V = float(w.sum())
-    x, y = float((w * xx).sum() / V), float((w * yy).sum() / V)
-    dx, dy = xx - x, yy - y
-    cxx, cyy, cxy = (w * dx * dx).sum() / V, (w * dy * dy).sum() / V, (w * dx * dy).sum() / V
-    tr, det = cxx + cyy, cxx * cyy - cxy**2
+    x, y, cov = weighted_moments(w, xx, yy)
+    tr, det = cov[0, 0] + cov[1, 1], cov[0, 0] * cov[1, 1] - cov[0, 1] ** 2
     disc = np.sqrt(max(tr * tr / 4 - det, 0.0))
     l1, l2 = tr / 2 + disc, tr / 2 - disc
     m2 = 1.5 * tr - 2 * blur**2 - 2 / 12
@@ -52,6 +50,16 @@ def rough_blob(a: np.ndarray, cx: float, cy: float, r: float, blur: float, noise
     R = float(np.sqrt(2.5 * m2))
     return dict(x=x, y=y, radius=R, sigma=float("inf"), mu_px=1.5 * 1.5 * V / (np.pi * R * R) / (2 * R), peak=top,
                 anisotropy=float(np.sqrt(l1 / l2)), flags=["clutter"], snr=top / max(noise, 1e-12))
+
+
+def weighted_moments(w: np.ndarray, xx: np.ndarray, yy: np.ndarray):
+    """Centroid (x, y px) and 2x2 second-moment matrix (px^2) of weights
+    ``w`` >= 0 (positive sum) on pixel coordinates ``xx``, ``yy``."""
+    W = float(w.sum())
+    x, y = float((w * xx).sum() / W), float((w * yy).sum() / W)
+    dx, dy = xx - x, yy - y
+    cov = np.array([[(w * dx * dx).sum(), (w * dx * dy).sum()], [(w * dx * dy).sum(), (w * dy * dy).sum()]]) / W
+    return x, y, cov
 
 
 def chain_like(radius: float, anisotropy: float, widest: float, max_anisotropy: float) -> bool:

@@ -12,8 +12,9 @@ from .. import __version__
 from ..scan import Scan
 from . import kernels
 from .crowded import detect_frame
-from .frame import DetectOptions, NonFiniteFrame, small_frame
+from .frame import DetectOptions, NonFiniteFrame
 from .noise import noise_correlation, noise_pixel, noise_small
+from .peaks import small_frame
 from .track import track
 
 MARKERS_FORMAT = "conecal-markers/1"

@@ -25,6 +25,7 @@ import numpy as np
 
 from ..stats import mad_sigma
 from .background import fit_profile, structured
+from .chain import weighted_moments
 from .frame import moment_trace
 from .overlap import background_basis, disc_misfit, fit_group, group_box, group_model, mask_weights, render_box
 
@@ -366,9 +367,7 @@ def _axis_chain(a, box, bg, quadratic: bool, wgt, m, R1: float, mu0: float, k: i
     W = float(p.sum())
     if W <= 0:
         return None
-    cx, cy = float((p * xx).sum() / W), float((p * yy).sum() / W)
-    dx, dy = xx - cx, yy - cy
-    cov = np.array([[(p * dx * dx).sum(), (p * dx * dy).sum()], [(p * dx * dy).sum(), (p * dy * dy).sum()]]) / W
+    cx, cy, cov = weighted_moments(p, xx, yy)
     ev, evec = np.linalg.eigh(cov)
     s = float(np.sqrt(max(12 * (ev[1] - ev[0]) / (k * k - 1), 0.0)))
     if s < 1.0:
