@@ -190,9 +190,14 @@ def measure_crowded(a: np.ndarray, kept: list[Blob], merged: list[Blob], opt: De
     kept = [b for b in kept if id(b) not in gone]
     split_parts = [p for own in parts for p in own]
     for m in singles:
-        # (two merged blobs around one sphere give it twice)
-        if id(m) not in gone and all(np.hypot(m.x - o.x, m.y - o.y) > 0.8 * max(m.radius, o.radius)
-                                     for o in kept + split_parts):
+        # (two merged blobs around one sphere give it twice; a split part there is
+        # the same sphere, which this blob measured alone holds better)
+        if id(m) in gone or any(np.hypot(m.x - o.x, m.y - o.y) <= 0.8 * max(m.radius, o.radius) for o in kept):
+            continue
+        same = [p for p in split_parts if np.hypot(m.x - p.x, m.y - p.y) <= 0.8 * max(m.radius, p.radius)]
+        if len(same) <= 1:
+            parts = [[p for p in own if not any(p is q for q in same)] for own in parts]
+            split_parts = [p for own in parts for p in own]
             kept.append(m)
     # (a seed on a shadow now measured alone is that shadow)
     seeds = [p for p in seeds if all((p[0] - m.x) ** 2 + (p[1] - m.y) ** 2 > (0.8 * m.radius) ** 2 for m in singles)]
@@ -214,9 +219,10 @@ def measure_crowded(a: np.ndarray, kept: list[Blob], merged: list[Blob], opt: De
     new = set(range(len(kept), len(blobs)))     # split parts and seeds: kept only once measured
     trial = set(range(len(kept) + len(parts), len(blobs)))   # seeds: kept only if the joint fit needs them
 
-    def measure(g: list, only: int | None = None) -> None:
+    def measure(g: list, only: int | None = None) -> bool:
         """Group ``g`` (indices into blobs) measured together; its members'
-        outcomes written to ``out`` (with ``only``: that member's alone)."""
+        outcomes written to ``out`` (with ``only``: that member's alone).
+        Whether a joint fit was had."""
         writes = {}   # index -> (blob or None, measured)
         members = [blobs[i] for i in g]
         s0 = np.array([[b.x, b.y, b.radius, b.mu_px] for b in members])
@@ -254,12 +260,16 @@ def measure_crowded(a: np.ndarray, kept: list[Blob], merged: list[Blob], opt: De
         fit = refit(s0, list(range(len(g))))
         if fit is None and any(i in trial for i in g):
             # a seed that is no sphere (it fades to nothing or to a negative contrast
-            # on a wall) sinks the joint fit: the group without one seed, else without any
-            for drop in [[n] for n, i in enumerate(g) if i in trial] + [[n for n, i in enumerate(g) if i in trial]]:
-                fit = refit(s0, [n for n in range(len(g)) if n not in drop])
-                if fit is not None or len(drop) > 1:
-                    g = dropped(g, drop)
-                    break
+            # on a wall) sinks the joint fit: the group without the seed whose absence
+            # fits best (chi-square on the whole group's patch: the first that fits
+            # may be a real sphere's), else without any
+            box = group_box(a.shape, s0, opt.blur_px)
+            tries = [(n, fit_group(ag, np.delete(s0, n, axis=0), opt.blur_px, noise, others, invalid, box=box,
+                                   quadratic=quad)) for n, i in enumerate(g) if i in trial]
+            tries = [(f[4], n) for n, f in tries if f is not None]
+            drop = [min(tries)[1]] if tries else [n for n, i in enumerate(g) if i in trial]
+            fit = refit(s0, [n for n in range(len(g)) if n not in drop])
+            g = dropped(g, drop)
         # a member never measured alone must earn its place in the joint fit
         while fit is not None and any(i in trial for i in g):
             drop = _unearned(ag, fit[1], [n for n, i in enumerate(g) if i in trial], fit[0], opt, noise, others,
@@ -298,6 +308,7 @@ def measure_crowded(a: np.ndarray, kept: list[Blob], merged: list[Blob], opt: De
                 out[i] = b
                 if measured:
                     new.discard(i)
+        return fit is not None
 
     def _on_structure(a, g, s0) -> bool:
         """Whether the background around the group (its shadows and their
@@ -319,7 +330,11 @@ def measure_crowded(a: np.ndarray, kept: list[Blob], merged: list[Blob], opt: De
             d = np.hypot(s0[:, 0] - s0[n_i, 0], s0[:, 1] - s0[n_i, 1])
             touch = window_reach(s0[:, 2], s0[n_i, 2], opt.blur_px)
             near = [g[j] for j in np.argsort(d) if j != n_i and d[j] < touch[j]][:_LOCAL_NEIGHBOURS]
-            measure([i] + near, only=i)
+            # (a fit that fails with its farthest neighbour may hold with the nearer
+            # ones; not for a seed, which must earn its place among all of them)
+            for k in range(len(near), -1, -1):
+                if measure([i] + near[:k], only=i) or k <= 1 or i in trial:
+                    break
     out = [b for i, b in enumerate(out) if b is not None and i not in new]
     # (a pair measured again with its neighbours keeps what its elongation said)
     for p in unsplit:

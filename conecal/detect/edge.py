@@ -25,8 +25,9 @@ _EDGE_MODEL_CHI2 = 4.0
 # ... or by this much more than the background around it, up to 3x that bar (the
 # profile under the shadow is what the pixels beside it pin least: the independent
 # helix's steel spheres where two walls cross read 3.7-7.8 on the disc against 2.4-5.6
-# around, centres 0.1 px from the truth; a diffuse "bone" blob 54-62 against 35-46)
-_EDGE_UNDER_SHADOW = 1.5
+# around, centres 0.1 px from the truth, and one on a wall's edge 4.09 against 2.67,
+# 0.05 px off; a diffuse "bone" blob 54-62 against 35-46)
+_EDGE_UNDER_SHADOW = 1.6
 
 
 def beside_edge(a, b: Blob, opt: DetectOptions, noise: float, invalid, others=()) -> Blob:

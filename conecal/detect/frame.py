@@ -388,9 +388,10 @@ def detect_blobs(a: np.ndarray, opt: DetectOptions):
         if any((cx - b.x) ** 2 + (cy - b.y) ** 2 < b.radius**2 for b in blobs + merged):
             continue
         b = refine(a, cx, cy, r_guess, opt, [(o.x, o.y, o.radius) for o in blobs], noise, invalid)
-        if b is None and h > 3 * opt.threshold:
+        if (b is None or not np.isfinite(b.anisotropy)) and h > 3 * opt.threshold:
             # a chain of touching shadows across a wall seen end-on: no background
-            # ring to be had for one sphere's window; its extent, to be split
+            # ring to be had for one sphere's window (or one whose second moments
+            # come out negative: no shape); its extent, to be split
             b = _rough_blob(a, cx, cy, r_guess, opt.blur_px, noise, opt)
         # (clutter allowed: the neighbours that make a cluster disturb its background)
         if b is not None and b.snr >= opt.min_snr and b.anisotropy < 3.0 and "truncated" not in b.flags:

@@ -388,7 +388,8 @@ def _disc(R: float) -> np.ndarray:
 def _contrast_restored(before: np.ndarray, after: np.ndarray, mu1, chi2_ratio: float) -> bool:
     """A single sphere fitted to two deeply overlapping shadows is too dense
     (their chords add up): the split is earned when it also takes most of the
-    fit's misfit and brings every part back to the frame's contrast ``mu1``."""
-    if mu1 is None or len(before) != 1 or chi2_ratio > 0.7:
+    fit's misfit and brings every part (of one blob, or of a chain holding
+    such a pair) back to the frame's contrast ``mu1``."""
+    if mu1 is None or chi2_ratio > 0.7:
         return False
-    return bool(before[0, 3] > 1.3 * mu1 and np.all((after[:, 3] > 0.75 * mu1) & (after[:, 3] < 1.3 * mu1)))
+    return bool(np.any(before[:, 3] > 1.3 * mu1) and np.all((after[:, 3] > 0.75 * mu1) & (after[:, 3] < 1.3 * mu1)))
