@@ -36,3 +36,39 @@ def system(tmp_path_factory):
     rot = rotation_scan(11, rows=256, cols=256, sod=100.0, sdd=500.0, n_frames=24, n_spheres=4,
                         true_geometry=lin.geometry)
     return write_scan(lin, root / "lin", seed=1), write_scan(rot, root / "rot", seed=2)
+
+
+class _Helix:
+    """Frames of the independent helix (benchmarks/helix_indep.py: the first
+    8 of a seed), generated once a session, and detect's blobs on them, each
+    frame with each nominal size once (several tests look at one frame)."""
+
+    def __init__(self):
+        self._scans, self._found = {}, {}
+
+    def scan(self, seed: int):
+        """(frames, truth) of ``seed``'s first 8 frames."""
+        if seed not in self._scans:
+            from benchmarks import helix_indep as gen
+            self._scans[seed] = gen.make_frames(seed, 8)
+        return self._scans[seed]
+
+    def detect(self, seed: int, k: int, sized_by=None):
+        """Blobs of frame ``k`` of ``seed``, with the nominal shadow sizes the
+        radii of seeds ``sized_by`` (default ``seed`` alone) span and the
+        noise measured on the frame, as bench_helix.py does."""
+        from conecal.detect import DetectOptions, detect_frame
+        from conecal.detect.noise import noise_correlation, noise_pixel
+        sized_by = tuple(sized_by or (seed,))
+        if (seed, k, sized_by) not in self._found:
+            r = [t["r_px"] for s in sized_by for fr in self.scan(s)[1] for t in fr]
+            img = np.ascontiguousarray(self.scan(seed)[0][k], np.float32)
+            opt = DetectOptions(diameter_px=(2 * min(r) * 0.9, 2 * max(r) * 1.1), pixel_noise=noise_pixel(img),
+                                noise_kappa=noise_correlation(img))
+            self._found[seed, k, sized_by] = detect_frame(img, opt)
+        return self._found[seed, k, sized_by]
+
+
+@pytest.fixture(scope="session")
+def helix():
+    return _Helix()

@@ -395,13 +395,11 @@ def test_lone_spheres_where_a_tubes_walls_cross_are_measured_with_the_walls_remo
             assert b.sigma < 0.3 and np.hypot(b.x - t["x"], b.y - t["y"]) < 3 * b.sigma, (t["id"], b)
 
 
-def test_three_touching_spheres_on_a_tubes_wall_are_split():
+def test_three_touching_spheres_on_a_tubes_wall_are_split(helix):
     # the independent helix, seed 2, frame 1: three spheres overlapping by a fifth
     # of a diameter inside the tube's wall seen end-on. Measured alone their blob
     # took in the wall and read 6.7 spheres' attenuation, over the split's bound
-    from benchmarks import helix_indep as gen
-    frames, truth = gen.make_frames(2, 8)
-    blobs = _helix_detect(frames[1], [t["r_px"] for fr in truth for t in fr])   # the scan's shadow sizes
+    blobs, truth = helix.detect(2, 1), helix.scan(2)[1]   # (the scan's shadow sizes)
     for t in truth[1]:
         if t["id"] in (5, 21, 37):
             b = _found_once(blobs, t)
@@ -409,31 +407,27 @@ def test_three_touching_spheres_on_a_tubes_wall_are_split():
 
 
 
-def test_two_helix_spheres_in_one_round_shadow_are_never_one_confident_centre():
+def test_two_helix_spheres_in_one_round_shadow_are_never_one_confident_centre(helix):
     # the independent helix, seed 2: two pairs 0.3-0.4 of a diameter apart on the
     # tube (frames 3 and 6) make one round shadow (anisotropy 1.05-1.16) that no
     # split separates, 1.4x denser than the spheres on the same background. The
     # marker between them was one centre at sigma 0.045 px, 0.8-1.5 px from either
-    from benchmarks import helix_indep as gen
-    frames, truth = gen.make_frames(2, 8)
-    r = [t["r_px"] for fr in truth for t in fr]
+    truth = helix.scan(2)[1]
     for k, (i, j) in ((3, (11, 12)), (6, (0, 1))):
         p, q = [next(t for t in truth[k] if t["id"] == n) for n in (i, j)]
-        for b in _helix_detect(frames[k], r):
+        for b in helix.detect(2, k):
             e = min(np.hypot(b.x - p["x"], b.y - p["y"]), np.hypot(b.x - q["x"], b.y - q["y"]))
             if e < 0.5 * p["r_px"]:
                 assert e < 3 * b.sigma, (k, e, b)
 
 
 
-def test_chains_of_three_across_a_tubes_wall_seen_end_on_are_split():
+def test_chains_of_three_across_a_tubes_wall_seen_end_on_are_split(helix):
     # the independent helix, seed 2, frame 1 (along the helix's axis): two chains
     # of three touching spheres lie across the tube's wall seen end-on. No window
     # had a background (the wall's band through it: a negative second moment),
     # so no candidate was measured and all six were lost
-    from benchmarks import helix_indep as gen
-    frames, truth = gen.make_frames(2, 8)
-    blobs = _helix_detect(frames[1], [t["r_px"] for fr in truth for t in fr])
+    blobs, truth = helix.detect(2, 1), helix.scan(2)[1]
     for t in truth[1]:
         if t["id"] in (2, 18, 34, 4, 20, 36):
             b = _found_once(blobs, t)

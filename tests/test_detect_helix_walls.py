@@ -3,32 +3,12 @@ where spheres lie on or across the plastic tube's walls: each case below
 was lost before the change its comment names."""
 
 import numpy as np
-import pytest
-
-from conecal.detect import DetectOptions, detect_frame
-from conecal.detect.noise import noise_correlation, noise_pixel
-
-
-@pytest.fixture(scope="module")
-def helix():
-    from benchmarks import helix_indep as gen
-    return {seed: gen.make_frames(seed, 8) for seed in (2, 3)}, {}
 
 
 def _detect(helix, seed, k):
-    """detect on frame ``k`` of ``seed`` with the nominal shadow sizes both
-    seeds' radii span and the noise measured on the frame, as
-    ``bench_helix.py --seeds 2 3`` does; (blobs, the frame's truth). Each
-    frame is detected once per module (two tests share one)."""
-    scans, done = helix
-    frames, truth = scans[seed]
-    if (seed, k) not in done:
-        r = [t["r_px"] for s in scans.values() for fr in s[1] for t in fr]
-        img = np.ascontiguousarray(frames[k], np.float32)
-        opt = DetectOptions(diameter_px=(2 * min(r) * 0.9, 2 * max(r) * 1.1), pixel_noise=noise_pixel(img),
-                            noise_kappa=noise_correlation(img))
-        done[seed, k] = detect_frame(img, opt)
-    return done[seed, k], truth[k]
+    """(blobs, truth) of frame ``k`` of ``seed``, sized as ``bench_helix.py
+    --seeds 2 3`` sizes it (the conftest's helix fixture)."""
+    return helix.detect(seed, k, sized_by=(2, 3)), helix.scan(seed)[1][k]
 
 
 def _honest(blobs, truth, ids, bound=3.0):
