@@ -64,3 +64,11 @@ def test_a_lone_sphere_on_a_walls_edge_is_measured_by_its_model(helix):
     # the patch around it (4.09 against 2.67), just over the bar of 1.5x
     blobs, truth = _detect(helix, 3, 6)
     _honest(blobs, truth, (36,))
+
+
+def test_a_part_as_wide_as_two_spheres_of_a_chain_is_started_as_two(helix):
+    # seed 2 frame 1 (along the helix's axis): two small spheres beside a large
+    # one, in a line. The split's second part covered both (radius 1.46x, half
+    # the contrast) and its third started at the residual's peak on the wall
+    blobs, truth = _detect(helix, 2, 1)
+    _honest(blobs, truth, (3, 19, 35))

@@ -267,8 +267,8 @@ def _grow(a, m, R1, mu1, mu0, ratio, blur, noise, kappa, mask_out, invalid, keep
         # (a chain seen along its axis: k started evenly along the blob's long axis,
         # where a greedy start beside a first sphere swollen over two goes astray)
         chain = _axis_chain(a, box, bg, quadratic, wgt, m, R1, mu0, len(sph) + 1)
-        nxt = _best_within(a, starts + ([chain] if chain is not None else []), m, reach, R1, blur, noise, mask_out,
-                           invalid, box, quadratic)
+        nxt = _best_within(a, starts + ([chain] if chain is not None else []) + _halves(sph, R1, mu0), m, reach,
+                           R1, blur, noise, mask_out, invalid, box, quadratic)
         if nxt is None:
             break
         nxt = _new_last(nxt, sph)
@@ -304,6 +304,26 @@ def _grow(a, m, R1, mu1, mu0, ratio, blur, noise, kappa, mask_out, invalid, keep
     if keep_inadequate:
         return best, adequate
     return best if adequate else None
+
+
+def _halves(sph: np.ndarray, R1: float, mu0: float) -> list:
+    """Starts (k + 1, 4) in which a part too wide or too faint for one of
+    the frame's spheres (radius over 1.3 ``R1``, contrast under half
+    ``mu0``) is two, placed along the line from its nearest part: two
+    spheres of a chain seen along its axis, which one disc covered (the
+    residual's peak then lies elsewhere, on a wall)."""
+    out = []
+    if len(sph) < 2:
+        return out
+    for w in np.flatnonzero((sph[:, 2] > 1.3 * R1) | (sph[:, 3] < 0.5 * mu0)):
+        rest = np.delete(sph, w, axis=0)
+        near = rest[np.argmin(np.hypot(rest[:, 0] - sph[w, 0], rest[:, 1] - sph[w, 1]))]
+        u = sph[w, :2] - near[:2]
+        if not np.any(u):
+            continue
+        d = max(sph[w, 2] - R1, 0.5 * R1) * u / np.hypot(*u)
+        out.append(np.vstack([rest, [*(sph[w, :2] + d), R1, mu0], [*(sph[w, :2] - d), R1, mu0]]))
+    return out
 
 
 def _best_within(a, starts, m, reach: float, R1: float, blur, noise, mask_out, invalid, box, quadratic: bool):
