@@ -191,7 +191,8 @@ def measure_crowded(a: np.ndarray, kept: list[Blob], merged: list[Blob], opt: De
     split_parts = [p for own in parts for p in own]
     for m in singles:
         # (two merged blobs around one sphere give it twice; a split part there is
-        # the same sphere, which this blob measured alone holds better)
+        # the same sphere, which this blob measured alone holds better; two parts
+        # there are two spheres the split saw where one was measured: they stand)
         if id(m) in gone or any(np.hypot(m.x - o.x, m.y - o.y) <= 0.8 * max(m.radius, o.radius) for o in kept):
             continue
         same = [p for p in split_parts if np.hypot(m.x - p.x, m.y - p.y) <= 0.8 * max(m.radius, p.radius)]
