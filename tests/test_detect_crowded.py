@@ -35,6 +35,19 @@ def test_the_model_jacobian_matches_finite_differences():
         assert np.corrcoef(num, J[:, k])[0, 1] > 0.98, k
 
 
+@pytest.mark.parametrize("R", [3.3, 6.2, 11.7])
+def test_the_model_holds_each_spheres_attenuation_and_both_paths_agree(R):
+    # a shadow's chords integrate to the sphere's volume times mu; the blur keeps it
+    s = np.array([[20.3, 18.7, 6.2, 0.05], [28.2 + R, 24.6, R, 0.06]])
+    m = render((48, 64), s, 0.8)
+    mj, J = render((48, 64), s, 0.8, jacobian=True)
+    volume = 4 / 3 * np.pi * s[:, 2] ** 3 * s[:, 3]
+    assert m.sum() == pytest.approx(volume.sum(), rel=2e-3)
+    np.testing.assert_allclose(mj, m, atol=1e-6)
+    # the model is linear in mu: its mu column times mu is each sphere's shadow
+    np.testing.assert_allclose(J[:, 3::4] @ s[:, 3], m.ravel(), atol=1e-6)
+
+
 @pytest.mark.parametrize("gap", [0.0, -0.25, -0.5])
 def test_touching_and_overlapping_pairs_are_all_measured(gap):
     rng = np.random.default_rng(3)

@@ -23,48 +23,30 @@ import numpy as np
 from ..errors import FitError
 from ..fit.core import Parameter, solve
 from .frame import window_reach
+from .kernels import chord_patch
 
 _SS = 3     # samples per pixel and axis
 
 
 def render(shape, spheres: np.ndarray, blur: float, jacobian: bool = False):
     """Model attenuation of ``spheres`` (k, 4: x, y, R px; mu per px of chord)
-    on a patch of ``shape`` (rows, cols) px, pixel-integrated and blurred.
-    With ``jacobian``: also d model / d(x, y, R, mu) per sphere, (rows*cols, 4k).
-    Each sphere is sampled only over its own box (its disc plus 4 blur sigmas)."""
+    on a patch of ``shape`` (rows, cols) px, pixel-integrated (3x3 samples)
+    and blurred. With ``jacobian``: also d model / d(x, y, R, mu) per
+    sphere, (rows*cols, 4k) float32."""
     h, w = shape
-    o = (np.arange(_SS) + 0.5) / _SS - 0.5
-    model = np.zeros((h, w), np.float32)
-    J = np.zeros((h, w, 4 * len(spheres))) if jacobian else None
-    m = 4 * blur + 2
-    for n, (x, y, R, mu) in enumerate(spheres):
-        c0, c1 = int(np.clip(np.floor(x - abs(R) - m), 0, w)), int(np.clip(np.ceil(x + abs(R) + m) + 1, 0, w))
-        q0, q1 = int(np.clip(np.floor(y - abs(R) - m), 0, h)), int(np.clip(np.ceil(y + abs(R) + m) + 1, 0, h))
-        if c1 <= c0 or q1 <= q0:
-            continue
-        bh, bw = q1 - q0, c1 - c0
-        ys = (np.arange(q0, q1)[:, None] + o[None, :]).ravel()
-        xs = (np.arange(c0, c1)[:, None] + o[None, :]).ravel()
-        dx, dy = xs[None, :] - x, ys[:, None] - y
-        q = R * R - dx * dx - dy * dy
-        inside = q > 0
-        s = np.sqrt(np.where(inside, q, 0.0))
-
-        def down(f):
-            # the mean over each pixel's samples (area resampling by a whole factor)
-            f = cv2.resize(f.astype(np.float32), (bw, bh), interpolation=cv2.INTER_AREA)
-            return cv2.GaussianBlur(f, (0, 0), blur, borderType=cv2.BORDER_REPLICATE) if blur > 0.05 else f
-
-        model[q0:q1, c0:c1] += down(2 * mu * s)
-        if jacobian:
-            # the rim's 1/sqrt(q) is integrable over a pixel but not sampled:
-            # kept finite at a fraction of a pixel inside the rim
-            inv = np.where(inside, 1.0 / np.sqrt(np.maximum(q, 0.5 * abs(R) + 1e-6)), 0.0)
-            for j, f in enumerate((2 * mu * dx * inv, 2 * mu * dy * inv, 2 * mu * R * inv, 2 * s)):
-                J[q0:q1, c0:c1, 4 * n + j] = down(f)
+    sph = np.ascontiguousarray(np.asarray(spheres, np.float64).reshape(-1, 4))
+    # the blur is linear: once over the patch, every sphere's derivatives as channels
+    f = _blur(chord_patch(sph, h, w, _SS, jacobian), blur).reshape(h, w, -1)
     if not jacobian:
-        return model
-    return model, J.reshape(h * w, -1)
+        return f[..., 0]
+    J = f.reshape(h * w, -1)
+    model = (f[..., 3::4] * sph[:, 3].astype(np.float32)).sum(axis=2) if len(sph) else np.zeros((h, w), np.float32)
+    return model, J
+
+
+def _blur(f: np.ndarray, blur: float) -> np.ndarray:
+    """The system's Gaussian blur (sigma ``blur`` px) of pixel field(s) ``f``."""
+    return cv2.GaussianBlur(f, (0, 0), blur, borderType=cv2.BORDER_REPLICATE) if blur > 0.05 and f.size else f
 
 
 def render_box(box, spheres: np.ndarray, blur: float) -> np.ndarray:
@@ -145,10 +127,14 @@ def fit_group(a: np.ndarray, spheres: np.ndarray, blur: float, noise: float, mas
         sph, bg = unpack(p)
         return wv * (render((h, w), sph, blur).ravel() + B @ bg - roi.ravel())
 
+    # the background's columns do not change: weighted once
+    Jw = np.empty((h * w, 4 * k + B.shape[1]))
+    Jw[:, 4 * k:] = wv[:, None] * B
+
     def jacobian(p):
         sph, _ = unpack(p)
-        _, J = render((h, w), sph, blur, jacobian=True)
-        return wv[:, None] * np.hstack([J, B])
+        np.multiply(render((h, w), sph, blur, jacobian=True)[1], wv[:, None], out=Jw[:, :4 * k])
+        return Jw.copy()
 
     params = []
     for i, (x, y, R, mu) in enumerate(s0):

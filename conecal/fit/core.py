@@ -175,7 +175,11 @@ def solve(parameters: list[Parameter], residuals: Callable[[np.ndarray], np.ndar
         if hessian == "numerical":
             res = _newton(fun_g, jac_g, start, lo, hi, scale, loss, f_scale, max_nfev, tol, hessian_step)
         elif large and loss == "linear":
-            res = _levenberg_marquardt(fun_g, jac_g, start, scale, max_nfev, tol, lo, hi)
+            # (no gauge rows on this path: its start's residuals are r0)
+            res = _levenberg_marquardt(fun_g, jac_g, start, scale, max_nfev, tol, lo, hi,
+                                       r0=None if len(gauge) else r0)
+            if not len(gauge):
+                history.insert(1, history[0])   # the record as if the start were evaluated again
         else:
             res = least_squares(fun_g, start, jac=jac_g, bounds=(lo, hi) if bounded else (-np.inf, np.inf),
                                 method="trf", x_scale=scale, loss=loss, f_scale=f_scale, max_nfev=max_nfev,
@@ -196,8 +200,13 @@ def solve(parameters: list[Parameter], residuals: Callable[[np.ndarray], np.ndar
         gauge = q.T
     res.nfev = nfev
     x = full(res.x)
-    r = fun(res.x)
-    J = jac(res.x)
+    if getattr(res, "r", None) is not None and not len(gauge):
+        # the solver's last residuals and Jacobian at its answer (thousands of small fits per frame)
+        r, J = res.r, res.jac_raw if res.jac_raw is not None else jac(res.x)
+        history.append(float(r @ r))
+    else:
+        r = fun(res.x)
+        J = jac(res.x)
     outliers = np.abs(r) > f_scale if loss != "linear" else np.zeros(r.size, bool)
     Jin = J[~outliers] if outliers.any() else J
     rin = r[~outliers]
@@ -266,22 +275,26 @@ def solve(parameters: list[Parameter], residuals: Callable[[np.ndarray], np.ndar
 _LM_SHRINK = 10.0
 
 
-def _levenberg_marquardt(fun, jac, x0, scale, max_nfev, tol, lo=None, hi=None):
+def _levenberg_marquardt(fun, jac, x0, scale, max_nfev, tol, lo=None, hi=None, r0=None):
     """Plain Levenberg-Marquardt on the normal equations (Cholesky), in the
     parameters' scales: for ``large`` problems, where an SVD of J per
     iteration (scipy's exact trust region) costs more than everything else,
     and for few parameters over millions of residuals (the image level).
     Steps are clipped to the bounds ``lo``, ``hi`` (a parameter may come to
-    rest on one: the caller reports it as pinned). Returns an object with
-    scipy's result fields."""
+    rest on one: the caller reports it as pinned). ``r0``: the residuals
+    at ``x0`` when already known. Returns an object with scipy's result
+    fields, plus ``r`` (the residuals at ``x``) and ``jac_raw`` (``jac(x)``
+    as returned, or None when not evaluated there)."""
     from types import SimpleNamespace
 
     x = x0.copy()
-    r = fun(x)
+    r = fun(x) if r0 is None else r0
+    J_raw = None
     cost = 0.5 * float(r @ r)
     lam, nfev, njev, status, msg = 1e-3, 1, 0, 0, "maximum evaluations"
     while nfev < max_nfev:
-        J = _scaled(jac(x), scale)
+        J_raw = jac(x)
+        J = _scaled(J_raw, scale)
         njev += 1
         g = J.T @ r
         H = _dense(J.T @ J)
@@ -318,7 +331,7 @@ def _levenberg_marquardt(fun, jac, x0, scale, max_nfev, tol, lo=None, hi=None):
             cost_new = 0.5 * float(r_new @ r_new)
             if np.isfinite(cost_new) and cost_new < cost:
                 small = cost - cost_new <= tol * cost or np.linalg.norm(step) <= tol * (np.linalg.norm(x / scale) + tol)
-                x, r, cost = x_new, r_new, cost_new
+                x, r, cost, J_raw = x_new, r_new, cost_new, None
                 lam = max(lam / _LM_SHRINK, 1e-9)
                 if small:
                     status, msg = 2, "cost or step below tolerance"
@@ -330,7 +343,7 @@ def _levenberg_marquardt(fun, jac, x0, scale, max_nfev, tol, lo=None, hi=None):
         if status:
             break
     return SimpleNamespace(x=x, cost=cost, nfev=nfev, njev=njev, status=status if status else 0, message=msg,
-                           hessian=None)
+                           hessian=None, r=r, jac_raw=J_raw)
 
 
 def _scaled(J, scale):
