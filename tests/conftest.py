@@ -68,6 +68,13 @@ class _Helix:
             self._found[seed, k, sized_by] = detect_frame(img, opt)
         return self._found[seed, k, sized_by]
 
+    @staticmethod
+    def found_once(blobs, t: dict):
+        """The one blob within half a radius of true sphere ``t`` (asserted)."""
+        near = [b for b in blobs if np.hypot(b.x - t["x"], b.y - t["y"]) < 0.5 * t["r_px"]]
+        assert len(near) == 1, (t["id"], near)
+        return near[0]
+
 
 @pytest.fixture(scope="session")
 def helix():

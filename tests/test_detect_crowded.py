@@ -376,15 +376,13 @@ def test_a_chain_is_started_evenly_along_its_long_axis():
         assert np.allclose(got, sorted(map(tuple, sph[:, :2])), atol=0.6), got
 
 
-def test_helix_spheres_on_a_tube_wall_and_a_pair_beside_its_end_are_found_once():
+def test_helix_spheres_on_a_tube_wall_and_a_pair_beside_its_end_are_found_once(helix):
     # an independent generator's frames (benchmarks/helix_indep.py): lone spheres on
     # the tube's curved wall (plane-fitted anisotropy 1.6-1.7), a pair overlapping by
     # 0.4 of a diameter whose split had soaked up the wall, lost before
-    from benchmarks import helix_indep as gen
-    frames, truth = gen.make_frames(0, 4)
-    r = [t["r_px"] for fr in truth for t in fr]
+    truth = helix.scan(0)[1]
     for k, ids in ((3, (11, 49)), (0, (26, 45))):
-        blobs = _helix_detect(frames[k], r)
+        blobs = helix.detect(0, k)
         for t in truth[k]:
             near = [b for b in blobs if np.hypot(b.x - t["x"], b.y - t["y"]) < 0.5 * t["r_px"]]
             assert len(near) <= 1, (k, t["id"], near)      # no sphere given twice
@@ -393,18 +391,16 @@ def test_helix_spheres_on_a_tube_wall_and_a_pair_beside_its_end_are_found_once()
                 assert b is not None and b.sigma < 0.3 and np.hypot(b.x - t["x"], b.y - t["y"]) < 3 * b.sigma, (k, t["id"], b)
 
 
-def test_lone_spheres_where_a_tubes_walls_cross_are_measured_with_the_walls_removed():
+def test_lone_spheres_where_a_tubes_walls_cross_are_measured_with_the_walls_removed(helix):
     # the independent helix (benchmarks/helix_indep.py), seed 2, frame 0: three
     # steel spheres 2-3 diameters from any other, on the tube's walls seen at a
     # slant (the background a curved ramp and a second edge across it). The
     # centroid on the cleaned patch stays elongated (1.26-1.3) and the sphere
     # model misfits its disc 1.2-1.5x the patch around it: all three were lost
-    from benchmarks import helix_indep as gen
-    frames, truth = gen.make_frames(2, 1)
-    blobs = _helix_detect(frames[0], [t["r_px"] for t in truth[0]])
-    for t in truth[0]:
+    blobs, truth = helix.detect(2, 0), helix.scan(2)[1][0]
+    for t in truth:
         if t["id"] in (20, 28, 40):
-            b = _found_once(blobs, t)
+            b = helix.found_once(blobs, t)
             assert b.sigma < 0.3 and np.hypot(b.x - t["x"], b.y - t["y"]) < 3 * b.sigma, (t["id"], b)
 
 
@@ -415,7 +411,7 @@ def test_three_touching_spheres_on_a_tubes_wall_are_split(helix):
     blobs, truth = helix.detect(2, 1), helix.scan(2)[1]   # (the scan's shadow sizes)
     for t in truth[1]:
         if t["id"] in (5, 21, 37):
-            b = _found_once(blobs, t)
+            b = helix.found_once(blobs, t)
             assert np.hypot(b.x - t["x"], b.y - t["y"]) < 0.3, (t["id"], b)
 
 
@@ -443,23 +439,5 @@ def test_chains_of_three_across_a_tubes_wall_seen_end_on_are_split(helix):
     blobs, truth = helix.detect(2, 1), helix.scan(2)[1]
     for t in truth[1]:
         if t["id"] in (2, 18, 34, 4, 20, 36):
-            b = _found_once(blobs, t)
+            b = helix.found_once(blobs, t)
             assert np.hypot(b.x - t["x"], b.y - t["y"]) < max(0.7, 3 * b.sigma), (t["id"], b)
-
-
-def _helix_detect(frame, r_px):
-    """detect on one frame of the independent helix (benchmarks/helix_indep.py)
-    with the nominal shadow sizes its radii ``r_px`` span, the noise measured
-    on the frame, as bench_helix.py does."""
-    from conecal.detect.noise import noise_correlation, noise_pixel
-    img = np.ascontiguousarray(frame, np.float32)
-    opt = DetectOptions(diameter_px=(2 * min(r_px) * 0.9, 2 * max(r_px) * 1.1), pixel_noise=noise_pixel(img),
-                        noise_kappa=noise_correlation(img))
-    return detect_frame(img, opt)
-
-
-def _found_once(blobs, t: dict):
-    """The one blob within half a radius of true sphere ``t`` (asserted)."""
-    near = [b for b in blobs if np.hypot(b.x - t["x"], b.y - t["y"]) < 0.5 * t["r_px"]]
-    assert len(near) == 1, (t["id"], near)
-    return near[0]
