@@ -10,7 +10,9 @@ attenuation centroid, its overlap and the gap to its nearest neighbour.
 Each frame is measured with the nominal shadow size exact and off by -25 %
 and +25 % (``diameter_px`` = nominal range x 0.9 / 1.1, then scaled), the
 pixel noise and its correlation measured on the frame as detect does per
-scan. Printed per size: spheres measured out of those in the field, by
+scan. Each seed's frames are then one scan: the scan-wide contrast and size
+floors of ``conecal detect`` (``pipeline.scan_filter``) are applied, unless
+``--frame-only``. Printed per size: spheres measured out of those in the field, by
 class (separate: gap >= 0.5 diameter; near: touching to 0.5 d; overlapping),
 RMS error, pull std per flag class, false detections, time per frame.
 
@@ -31,6 +33,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from conecal.detect import DetectOptions, detect_frame  # noqa: E402
 from conecal.detect.noise import noise_correlation, noise_pixel  # noqa: E402
+from conecal.detect.pipeline import scan_filter  # noqa: E402
 from conecal.stats import mad_sigma  # noqa: E402
 
 HERE = Path(__file__).parent
@@ -54,6 +57,8 @@ def main():
     ap.add_argument("--frames", type=int, default=24)
     ap.add_argument("--scales", type=float, nargs="*", default=[1.0, 0.75, 1.25])
     ap.add_argument("--no-holder", action="store_true", help="without the plastic tube (overlaps alone)")
+    ap.add_argument("--frame-only", action="store_true",
+                    help="score each frame's blobs before the scan-wide contrast and size floors")
     a = ap.parse_args()
     gen = _generator()
     if a.no_holder:
@@ -69,15 +74,20 @@ def main():
         pulls: dict[str, list] = {}
         false, t_tot, n_fr = 0, 0.0, 0
         for frames, truth in data:
-            for img, tr in zip(frames, truth):
+            found = []
+            for img in frames:
                 # the generator alternates the blur before and after the noise: a
                 # real scan keeps one, so the noise is measured per frame here
                 opt = DetectOptions(diameter_px=(nominal[0] * 0.9 * scale, nominal[1] * 1.1 * scale),
                                     pixel_noise=noise_pixel(img), noise_kappa=noise_correlation(img))
                 t0 = time.perf_counter()
-                blobs = detect_frame(np.ascontiguousarray(img, np.float32), opt)
+                found.append(detect_frame(np.ascontiguousarray(img, np.float32), opt))
                 t_tot += time.perf_counter() - t0
                 n_fr += 1
+            if not a.frame_only:
+                # each seed's frames are one scan: its contrast and size floors, as `conecal detect` applies them
+                found = scan_filter(found, opt, gen.D_SMALL / gen.D_LARGE)[0]
+            for blobs, tr in zip(found, truth):
                 used = set()
                 for t in tr:
                     c = cls(t)

@@ -20,7 +20,7 @@ from .frame import ROUND_ANISOTROPY, Blob, DetectOptions, chord_like, detect_blo
 from .background import fit_profile, structured
 from .edge import CONE_OFFSET_PX, beside_edge
 from .overlap import components, fit_group, group_box, groups_of, joint_sigma, render_box
-from .split import hidden_pairs, is_pair, peaks_in, split, unsplit_pair
+from .split import elongation_bound, hidden_pairs, is_pair, peaks_in, split, unsplit_pair
 
 # A joint model's centre that no centroid confirms (a seed, a split part, or a
 # shadow whose centroid cannot be had beside its neighbours) is off by more
@@ -79,6 +79,7 @@ def detect_frame(a: np.ndarray, opt: DetectOptions) -> list[Blob]:
         if (b2 is not b and b2.anisotropy <= opt.max_anisotropy
                 and all(np.hypot(b2.x - o.x, b2.y - o.y) > 0.8 * max(o.radius, b2.radius) for o in out)):
             out.append(b2)
+    out = [elongation_bound(b, opt.blur_px, opt.max_anisotropy) if "overlap" in b.flags else b for b in out]
     return hidden_pairs(a, out, opt.blur_px)
 
 
