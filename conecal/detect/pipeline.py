@@ -144,6 +144,7 @@ def measure_frames(scan: Scan, opt: DetectOptions, frames_idx: list[int], *, wor
 
 
 def _measure_frames(scan, opt, frames_idx, workers, lag, progress):
+    """:func:`measure_frames`' work, under its thread limit."""
     opt = scan_options(scan, opt)
     all_idx = [int(f) for f in scan.log.frame]
     order = np.argsort(np.asarray(scan.log.time, float), kind="stable")

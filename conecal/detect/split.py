@@ -165,7 +165,7 @@ def elongation_bound(m, blur: float, most: float):
     major, minor = _moments(m, blur)
     lone = (major + minor) * (_PAIR_ANISOTROPY**2 - 1) / (_PAIR_ANISOTROPY**2 + 1)
     h = float(np.sqrt(max(major - minor - lone, 0.0)))
-    return replace(m, sigma=max(m.sigma, h)) if h > m.sigma else m
+    return replace(m, sigma=h) if h > m.sigma else m
 
 
 def hidden_pairs(a: np.ndarray, blobs: list, blur: float) -> list:
