@@ -126,6 +126,15 @@ def _moments(m, blur: float) -> tuple[float, float]:
     return trace - minor, minor
 
 
+def _stretch(m, blur: float, beyond: float = 1.0) -> float:
+    """The half-separation h (px) that blob ``m``'s elongation beyond an
+    anisotropy of ``beyond`` shows: two round shadows 2h apart along x have
+    second moments c + h^2 and c."""
+    major, minor = _moments(m, blur)
+    lone = (major + minor) * (beyond**2 - 1) / (beyond**2 + 1)
+    return float(np.sqrt(max(major - minor - lone, 0.0)))
+
+
 def is_pair(m, R1: float, mu1, blur: float) -> bool:
     """Whether blob ``m`` (deep, or merged and no split found) is two of the
     frame's spheres (radius ``R1`` px, contrast ``mu1``; blur ``blur`` px)
@@ -144,27 +153,22 @@ def is_pair(m, R1: float, mu1, blur: float) -> bool:
 
 def unsplit_pair(m, blur: float):
     """Blob ``m``, the shadow of two spheres nearly on top of each other,
-    flagged overlap, its sigma at least the half-separation h its elongation
-    shows (a pair 2h apart along x has second moments c + h^2 and c)."""
-    major, minor = _moments(m, blur)
-    h = float(np.sqrt(max(major - minor, 0.0)))
-    return replace(m, sigma=float(np.hypot(m.sigma, h)), flags=sorted(set(m.flags) | {"overlap"}))
+    flagged overlap, its sigma widened by the half-separation its elongation
+    shows (:func:`_stretch`)."""
+    return replace(m, sigma=float(np.hypot(m.sigma, _stretch(m, blur))), flags=sorted(set(m.flags) | {"overlap"}))
 
 
 def elongation_bound(m, blur: float, most: float):
     """Blob ``m`` (flagged overlap: a neighbour's shadow within reach), more
     elongated than any sphere (anisotropy over ``most``), with its sigma at
     least the offset that its elongation beyond a lone sphere's
-    (``_PAIR_ANISOTROPY``) shows: a centroid window holding two round shadows
-    along a line is stretched by their half-separation h (second moments
-    c + h^2 and c). Two small spheres half overlapped hold one large sphere's
-    attenuation on a phantom of two sizes, so no density test sees them; one
-    such marker read sigma 0.5 px, 2.3 px from either sphere."""
+    (``_PAIR_ANISOTROPY``) shows (:func:`_stretch`). Two small spheres half
+    overlapped hold one large sphere's attenuation on a phantom of two sizes,
+    so no density test sees them; one such marker read sigma 0.5 px, 2.3 px
+    from either sphere."""
     if not np.isfinite(m.anisotropy) or m.anisotropy <= most:
         return m
-    major, minor = _moments(m, blur)
-    lone = (major + minor) * (_PAIR_ANISOTROPY**2 - 1) / (_PAIR_ANISOTROPY**2 + 1)
-    h = float(np.sqrt(max(major - minor - lone, 0.0)))
+    h = _stretch(m, blur, _PAIR_ANISOTROPY)
     return replace(m, sigma=h) if h > m.sigma else m
 
 
@@ -213,7 +217,7 @@ def hidden_pairs(a: np.ndarray, blobs: list, blur: float) -> list:
     out = list(blobs)
     for i in np.flatnonzero(dense):
         b = out[i]
-        h = np.sqrt(max(np.subtract(*_moments(b, blur)), 0.0)) if np.isfinite(b.anisotropy) else 0.0
+        h = _stretch(b, blur) if np.isfinite(b.anisotropy) else 0.0
         out[i] = replace(b, sigma=float(np.hypot(b.sigma, max(h, _HIDDEN_OFFSET * b.radius))),
                          flags=sorted(set(b.flags) | {"overlap"}))
     return out
