@@ -8,9 +8,11 @@ before or after the noise, shadows 9-14 px. Truth: each sphere's own
 attenuation centroid, its overlap and the gap to its nearest neighbour.
 
 Each frame is measured with the nominal shadow size exact and off by -25 %
-and +25 % (``diameter_px`` = nominal range x 0.9 / 1.1, then scaled), the
-pixel noise and its correlation measured on the frame as detect does per
-scan. Each seed's frames are then one scan: the scan-wide contrast and size
+and +25 % (``diameter_px`` = nominal range x 0.9 / 1.1, then scaled; the
+declared spheres' shadows at the nominal magnification scaled alike), after
+detect's measurement of the size on each seed's middle frame (unless
+``--typed-size``), the pixel noise and its correlation measured on the frame
+as detect does per scan. Each seed's frames are then one scan: the scan-wide contrast and size
 floors of ``conecal detect`` (``pipeline.scan_filter``) are applied, unless
 ``--frame-only``. Printed per size: spheres measured out of those in the field, by
 class (separate: gap >= 0.5 diameter; near: touching to 0.5 d; overlapping),
@@ -25,6 +27,7 @@ import argparse
 import importlib.util
 import sys
 import time
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -34,6 +37,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from conecal.detect import DetectOptions, detect_frame  # noqa: E402
 from conecal.detect.noise import noise_correlation, noise_pixel  # noqa: E402
 from conecal.detect.pipeline import scan_filter  # noqa: E402
+from conecal.detect.size import measured_size  # noqa: E402
 from conecal.stats import mad_sigma  # noqa: E402
 
 HERE = Path(__file__).parent
@@ -57,6 +61,8 @@ def main():
     ap.add_argument("--frames", type=int, default=24)
     ap.add_argument("--scales", type=float, nargs="*", default=[1.0, 0.75, 1.25])
     ap.add_argument("--no-holder", action="store_true", help="without the plastic tube (overlaps alone)")
+    ap.add_argument("--typed-size", action="store_true",
+                    help="look for the typed (scaled) size, without detect's measurement of it on the middle frame")
     ap.add_argument("--frame-only", action="store_true",
                     help="score each frame's blobs before the scan-wide contrast and size floors")
     a = ap.parse_args()
@@ -73,13 +79,24 @@ def main():
         acc = {c: [0, []] for c in ("separate", "near", "overlapping")}
         pulls: dict[str, list] = {}
         false, t_tot, n_fr = 0, 0.0, 0
+        scales_seen = []
         for frames, truth in data:
             found = []
+            # the typed size: the declared spheres' shadows at the nominal magnification, scaled
+            typed = DetectOptions(diameter_px=(nominal[0] * 0.9 * scale, nominal[1] * 1.1 * scale),
+                                  shadow_px=tuple(d * gen.SDD / gen.SOD / gen.PITCH * scale
+                                                  for d in (gen.D_SMALL, gen.D_LARGE)))
+            if not a.typed_size:
+                # as `conecal detect` does once per scan (pipeline.scan_options): the
+                # middle frame's shadows measured at the typed size
+                mid = np.ascontiguousarray(frames[len(frames) // 2], np.float32)
+                typed = measured_size(detect_frame(mid, replace(typed, pixel_noise=noise_pixel(mid),
+                                                                noise_kappa=noise_correlation(mid))), typed)
+                scales_seen.append(typed.size_scale)
             for img in frames:
                 # the generator alternates the blur before and after the noise: a
                 # real scan keeps one, so the noise is measured per frame here
-                opt = DetectOptions(diameter_px=(nominal[0] * 0.9 * scale, nominal[1] * 1.1 * scale),
-                                    pixel_noise=noise_pixel(img), noise_kappa=noise_correlation(img))
+                opt = replace(typed, pixel_noise=noise_pixel(img), noise_kappa=noise_correlation(img))
                 t0 = time.perf_counter()
                 found.append(detect_frame(np.ascontiguousarray(img, np.float32), opt))
                 t_tot += time.perf_counter() - t0
@@ -108,6 +125,8 @@ def main():
             rms = np.sqrt(np.mean(e**2)) if len(e) else float("nan")
             print(f"| {scale:.2f} | {c} | {n} | {len(e)} ({100 * len(e) / max(n, 1):.1f} %) | {rms:.3f} | "
                   f"{false if c == 'separate' else ''} | {t_tot / n_fr:.2f} |", flush=True)
+        if scales_seen:
+            print("measured / typed size per seed: " + " ".join(f"{v:.3f}" for v in scales_seen))
         tot_n = sum(v[0] for v in acc.values())
         tot_m = sum(len(v[1]) for v in acc.values())
         print(f"| {scale:.2f} | all | {tot_n} | {tot_m} ({100 * tot_m / tot_n:.1f} %) | | {false} | |")

@@ -55,12 +55,25 @@ def command(scan, output, workers, threshold, blur_px, diameter_px, lag, frame_r
         with progress_bar("detect") as prog:
             opt, results = measure_frames(s, opt, idx, workers=workers, lag=lag, progress=prog)
         write_json(output, {**part_document(s, opt, idx, results, lag), "scan": str(scan)})
+        _say_size(opt.size_scale, opt.diameter_px)
         info(f"wrote {output}: a part, frames {idx[0]}..{idx[-1]} ({len(idx)} frames, {sum(map(len, results))} "
              f"blobs); join the parts with conecal merge")
         return
     with progress_bar("detect") as prog:
         doc = detect_scan(s, opt, workers=workers, lag=lag, progress=prog)
     write_json(output, {**doc, "scan": str(scan)})
+    _say_size(doc["options"]["size_scale"], doc["options"]["diameter_px"])
     n = sum(len(f["markers"]) for f in doc["frames"])
     flagged = sum(1 for f in doc["frames"] for m in f["markers"] if m["flags"])
     info(f"wrote {output}: {n} markers in {len(doc['frames'])} frames ({flagged} flagged), {doc['n_ids']} identities")
+
+
+def _say_size(s: float, diameter_px) -> None:
+    """Tell the user when the shadows were not the size the nominal
+    magnification says (measured over nominal ``s``) and were looked for at
+    the measured size (``diameter_px``, px)."""
+    from ..detect.size import KEEP_WITHIN
+
+    if s and not 1 / KEEP_WITHIN <= s <= KEEP_WITHIN:
+        info(f"the shadows measure {s:.2f}x the size markers.diameter and the nominal magnification give "
+             f"(sdd/sod off, or another sphere size?): looked for {diameter_px[0]:.1f}-{diameter_px[1]:.1f} px")

@@ -77,6 +77,11 @@ class DetectOptions:
     # touching shadows fitted together, merged blobs split, a straight
     # background step beside a shadow removed (conecal.detect.crowded)
     joint_overlaps: bool = True
+    # the declared spheres' shadow diameters (px) at the nominal magnification,
+    # from which ``diameter_px`` was made; empty when the user gave the range
+    shadow_px: tuple[float, ...] = ()
+    # measured over nominal shadow size (:mod:`conecal.detect.size`; 0: not measured)
+    size_scale: float = 0.0
 
     @property
     def factor(self) -> int:

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import multiprocessing as mp
 import signal
+from dataclasses import replace
 from typing import Callable
 
 import numpy as np
@@ -16,6 +17,7 @@ from .crowded import detect_frame
 from .frame import DetectOptions, NonFiniteFrame
 from .noise import noise_correlation, noise_pixel, noise_small
 from .peaks import small_frame
+from .size import MIN_SHADOWS, measured_size
 from .track import track
 
 MARKERS_FORMAT = "conecal-markers/1"
@@ -64,7 +66,8 @@ def options_for_scan(scan: Scan, *, threshold: float = 10.0, blur_px: float = 1.
             raise InputError(f"{scan.root / 'scan.yaml'}: markers.diameter: a {max(ds):g} mm sphere casts a "
                              f"{max(px):.3g} px shadow at pixel pitch {pitch:g} mm and magnification {m:.3g} "
                              f"(expected 0.5 px to the detector's {size} px; give --diameter-px to override)")
-        diameter_px = (0.6 * min(px), 1.6 * max(px))
+        return DetectOptions(diameter_px=(0.6 * min(px), 1.6 * max(px)), threshold=threshold, blur_px=blur_px,
+                             shadow_px=tuple(float(d) for d in px))
     return DetectOptions(diameter_px=tuple(float(d) for d in diameter_px), threshold=threshold, blur_px=blur_px)
 
 
@@ -115,20 +118,37 @@ def detect_scan(scan: Scan, opt: DetectOptions, *, workers: int = 2, lag: float 
 
 
 def scan_options(scan: Scan, opt: DetectOptions) -> DetectOptions:
-    """``opt`` with the scan's pixel noise, measured once on the middle frame of
-    the whole log (so that every shard of a scan uses the same)."""
+    """``opt`` with the scan's pixel noise and shadow size, measured once on
+    the middle frame of the whole log (and the frames a quarter of the log
+    either side when it holds too few shadows), so that every shard of a scan
+    uses the same: the sizes looked for follow the measured ones when the
+    nominal magnification was off (:func:`conecal.detect.size.measured_size`)."""
     frames_idx = [int(f) for f in scan.log.frame]
-    if not opt.pixel_noise and frames_idx:
+    if not frames_idx or (opt.pixel_noise and (opt.size_scale or not opt.shadow_px)):
+        return opt
+    scan.stack.read(frames_idx[0], check=False)   # a bad stack is named at its first frame
+    mid = scan.stack.read(frames_idx[len(frames_idx) // 2], check=False)
+    if not np.isfinite(mid).all():
+        return opt
+    if not opt.pixel_noise:
         # JPEG, 8-bit or scintillator-blurred frames: noise correlated over a
         # few px, which neighbour differences miss (then every marker looked
-        # like clutter); measured once, on the middle frame
-        from dataclasses import replace
-
-        scan.stack.read(frames_idx[0], check=False)   # a bad stack is named at its first frame
-        mid = scan.stack.read(frames_idx[len(frames_idx) // 2], check=False)
-        if np.isfinite(mid).all():
-            opt = replace(opt, pixel_noise=noise_pixel(mid), noise_kappa=noise_correlation(mid),
-                          noise_reference=noise_small(small_frame(mid, opt)) * opt.factor)
+        # like clutter)
+        opt = replace(opt, pixel_noise=noise_pixel(mid), noise_kappa=noise_correlation(mid),
+                      noise_reference=noise_small(small_frame(mid, opt)) * opt.factor)
+    if opt.shadow_px and not opt.size_scale:
+        # the middle frame's shadows, and a quarter's either side of it while too few
+        blobs = detect_frame(mid, opt)
+        for q in (1, 3):
+            if len(blobs) >= MIN_SHADOWS or len(frames_idx) < 4:
+                break
+            more = scan.stack.read(frames_idx[q * len(frames_idx) // 4], check=False)
+            if np.isfinite(more).all():
+                blobs = blobs + detect_frame(more, opt)
+        sized = measured_size(blobs, opt)
+        if sized.factor != opt.factor:
+            sized = replace(sized, noise_reference=noise_small(small_frame(mid, sized)) * sized.factor)
+        opt = sized
     return opt
 
 
@@ -272,7 +292,8 @@ def assemble(scan: Scan, opt: DetectOptions, frames_idx: list[int], results: lis
             "options": {"diameter_px": list(opt.diameter_px), "threshold": opt.threshold, "blur_px": opt.blur_px,
                         "pixel_noise": round(opt.pixel_noise, 8), "noise_kappa": round(opt.noise_kappa, 4),
                         "noise_reference": round(opt.noise_reference, 8),
-                        "max_anisotropy": opt.max_anisotropy, "min_relative_contrast": opt.min_relative_contrast},
+                        "max_anisotropy": opt.max_anisotropy, "min_relative_contrast": opt.min_relative_contrast,
+                        "size_scale": round(opt.size_scale, 4)},
             "reference_mu_px": round(ref, 6),
             "identities": "phantom ids are assigned by fit-pose" if robot else "tracked across frames",
             "n_ids": 0 if robot else len(spans), "frames": frames}

@@ -47,5 +47,6 @@ def merge_marker_parts(paths: list) -> dict:
     o = dict(parts[0][1]["part_options"])
     o.pop("lag", None)
     o["diameter_px"] = tuple(o["diameter_px"])
+    o["shadow_px"] = tuple(o.get("shadow_px", ()))
     doc = assemble(scan, DetectOptions(**o), frames_idx, results)
     return {**doc, "scan": parts[0][1]["scan"]}

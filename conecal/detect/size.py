@@ -1,0 +1,63 @@
+"""The scan's shadow size measured on its own images.
+
+The sizes detect looks for come from ``markers.diameter(s)`` and the nominal
+magnification the user typed; a wrong guess of it (a C-arm's or a hand-placed
+grid's source distances are rarely known to 25 %) changed which peaks were
+candidates, the background rings and the crowd tests, so the same images gave
+other markers. Here the shadows of one frame measured with the typed size say
+how far off it is, and the sizes looked for follow what was measured.
+"""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+import numpy as np
+
+from .frame import DetectOptions
+
+# measured / typed shadow size within this factor either way: the typed size
+# is kept (the search range is 0.6-1.6x wide; a blob's moment diameter reads
+# 0.92-0.98 of its shadow's when the typed blur is the system's)
+KEEP_WITHIN = 1.15
+# fewer measured shadows than this: the typed size is kept
+MIN_SHADOWS = 5
+# ratios searched (measured / typed)
+_RATIOS = np.exp(np.linspace(np.log(0.33), np.log(3.0), 600))
+
+
+def size_ratio(diameters, shadow_px) -> float | None:
+    """Measured over nominal shadow size: the factor s (unitless) that best
+    puts each measured diameter (px) on one of the nominal ones ``shadow_px``
+    (px, one per declared sphere diameter): least sum of |log d - log(s p)|
+    over the nearest p, plus half a unit of |log s| so that with two declared
+    sizes a set that fits either equally keeps the typed magnification.
+    None for fewer than ``MIN_SHADOWS`` diameters."""
+    d = np.log(np.asarray(diameters, float))
+    d = d[np.isfinite(d)]
+    if d.size < MIN_SHADOWS or not len(shadow_px):
+        return None
+    p = np.log(np.asarray(shadow_px, float))
+    ls = np.log(_RATIOS)
+    cost = np.abs(d[None, :, None] - ls[:, None, None] - p[None, None, :]).min(2).sum(1) + 0.5 * np.abs(ls)
+    return float(_RATIOS[int(np.argmin(cost))])
+
+
+def measured_size(blobs: list, opt: DetectOptions) -> DetectOptions:
+    """``opt`` with ``size_scale`` (the measured over typed shadow size, from
+    ``blobs``: one frame's shadows found with ``opt``; its unflagged ones, or
+    all when fewer than ``MIN_SHADOWS``) and, when that is beyond
+    ``KEEP_WITHIN``, the search range and nominal sizes scaled by it. ``opt``
+    unchanged when it has no nominal sizes (``--diameter-px`` given) or too
+    few shadows were measured."""
+    if not opt.shadow_px:
+        return opt
+    use = [b for b in blobs if not b.flags]
+    use = use if len(use) >= MIN_SHADOWS else blobs
+    s = size_ratio([2.0 * b.radius for b in use], opt.shadow_px)
+    if s is None:
+        return opt
+    if abs(np.log(s)) <= np.log(KEEP_WITHIN):
+        return replace(opt, size_scale=s)
+    return replace(opt, size_scale=s, diameter_px=tuple(float(d * s) for d in opt.diameter_px),
+                   shadow_px=tuple(float(d * s) for d in opt.shadow_px))
