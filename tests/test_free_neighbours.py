@@ -185,3 +185,56 @@ def test_a_twin_the_phantoms_symmetry_makes_is_no_rival():
     assert not isinstance(got, Tie) and got is not None
     want = by_convention([a, b], SHAPE)
     assert np.allclose(got[0].R, want.R, atol=1e-3)
+
+
+class _Bundle:
+    """What the second look reads of a bundle: one camera, no distortion,
+    the ok frames' poses (slot order) and a residual scale of 0.05 px."""
+
+    def __init__(self, poses):
+        self.R = np.array([R for R, _ in poses])
+        self.t = np.array([t for _, t in poses])
+        self.camera = CAM
+        self.residual_px = np.full((40, 2), 0.035)
+
+    def frame_camera(self, s):
+        return CAM
+
+    def frame_distortion(self, s):
+        return None
+
+
+def test_a_winner_that_leaves_detections_unexplained_waits_for_the_search_near_its_neighbours(monkeypatch):
+    """A frame the denser search names with a labelling that leaves 5 of its
+    23 detections unexplained (an independent generator's biplane: every
+    sphere named wrong at 1.9x the floor, the right labelling never voted) is
+    not taken as it is: searched near the pose its ok neighbours predict,
+    the right one explains every detection and names the frame."""
+    from conecal.calib import second_look as sl
+    from conecal.calib.run import FreeOptions
+    from conecal.calib.search import SearchResult
+    from conecal.documents.status import OK, rejected
+
+    points = _helix()
+    shape = describe_phantom(points, np.arange(1, len(points) + 1), radius=1.25)
+    poses = _sweep(np.random.default_rng(3), n=9, step_deg=5.0)
+    rng = np.random.default_rng(2)
+    dets, usable, orders = {}, [], {}
+    for k, (R, t) in enumerate(poses):
+        order = orders[k] = rng.permutation(len(points))[:23]
+        dets[k] = (CAM.project(points[order] @ R.T + t) + rng.normal(0, 0.03, (23, 2)),)
+        if k != 4:
+            best = Candidate(np.arange(23), order, R, t, 0.04)
+            usable.append({"frame": k, "slot": len(usable), "pairs": (np.arange(23), order), "status": OK,
+                           "search": SearchResult(OK, best)})
+    R, t = poses[4]
+    turned = rotvec_to_matrix([0.0, 0.0, np.pi]) @ R
+    wrong = Candidate(np.arange(18), rng.permutation(len(points))[:18], turned, t, 0.09)
+    fr = {"frame": 4, "status": rejected("residual", "0.42 px"), "search": SearchResult(rejected("residual", ""), wrong)}
+    # (the denser search returns the wrong labelling as the only one at the floor)
+    monkeypatch.setattr(sl, "_decide", lambda *a, **k: (wrong, ""))
+    b = _Bundle([poses[k] for k in range(9) if k != 4])
+    won, lost = sl.second_look(b, [fr], usable, dets, shape, points, FreeOptions())
+    assert won == [fr] and lost == []
+    c = fr["search"].best
+    assert len(c.sph) >= 22 and np.array_equal(c.sph, orders[4][c.det])   # every detection named as made
