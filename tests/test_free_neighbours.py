@@ -238,3 +238,24 @@ def test_a_winner_that_leaves_detections_unexplained_waits_for_the_search_near_i
     assert won == [fr] and lost == []
     c = fr["search"].best
     assert len(c.sph) >= 22 and np.array_equal(c.sph, orders[4][c.det])   # every detection named as made
+
+
+def test_a_rival_doubts_an_identification_by_count_or_by_a_clearly_better_fit():
+    """Explaining one detection fewer doubts nothing at the same fit (a
+    helix's turned labellings), but does when it fits far closer (the right
+    labelling of a grid under a bump the model lacks, against a turned one
+    that bends to keep one more sphere)."""
+    from conecal.calib.second_look import _doubts
+
+    R, t = _sweep(np.random.default_rng(5))[2]
+    pts = SHAPE.points
+    rng = np.random.default_rng(1)
+    xy = CAM.project(pts @ R.T + t) + rng.normal(0, 0.1, (len(pts), 2))
+    every = np.arange(len(pts))
+    pooled = 0.14                                          # the scan's 2-D RMS, px
+    close = Candidate(every[:-1], every[:-1], R, t)        # one fewer, at the noise
+    bent = Candidate(every, every, R, t + R @ np.array([0.05, 0.0, 0.0]))   # all, 0.1 mm off: ~0.2 px more
+    same = Candidate(every, every, R, t)
+    assert _doubts(CAM, pts, xy, close, bent, len(bent.sph), pooled)
+    assert not _doubts(CAM, pts, xy, close, same, len(same.sph), pooled)
+    assert _doubts(CAM, pts, xy, same, bent, len(bent.sph), pooled)   # as many: always a rival

@@ -121,6 +121,22 @@ def _rescaled(dets: dict, scales: dict) -> bool:
     return True
 
 
+def shadow_depth(markers: dict, diameter_mm: float, cam: Camera) -> float | None:
+    """The phantom's distance from the source (mm) its markers' shadows say:
+    the nominal sdd over the median magnification 2 r pitch / diameter of
+    the markers with a radius (px), not flagged overlap or truncated (whose
+    radius is no one sphere's); None for fewer than 20. (A shadow's moment
+    radius reads 0.92-0.98 of its own: the depth a few % long, well inside
+    the search's 0.85-1.17.)"""
+    r = [m["radius"] for f in markers["frames"] for m in f["markers"]
+         if not {"overlap", "truncated"} & set(m.get("flags", ())) and m.get("radius") is not None
+         and np.isfinite(m["radius"]) and m["radius"] > 0]
+    if len(r) < 20:
+        return None
+    m = 2 * float(np.median(r)) * float(np.sqrt(np.prod(cam.pitch))) / diameter_mm
+    return float(cam.sdd / m)
+
+
 def _guesses(scan):
     extra = scan.log.extra
     if not extra:
@@ -128,6 +144,11 @@ def _guesses(scan):
     W = np.deg2rad(np.column_stack([extra["rx"], extra["ry"], extra["rz"]]))
     T = np.column_stack([extra["tx"], extra["ty"], extra["tz"]])
     return [(rotvec_to_matrix(w), t) for w, t in zip(W, T)]
+
+
+# the nominal sod is searched about unless the shadows put the phantom farther
+# off than this factor (the search's depths span 0.85-1.17 of it)
+_DEPTH_KEPT = 1.1
 
 
 def calibrate_free(scan, markers: dict, geometry, opt: FreeOptions = FreeOptions(), progress=None,
@@ -140,6 +161,11 @@ def calibrate_free(scan, markers: dict, geometry, opt: FreeOptions = FreeOptions
     shape = describe_phantom(scan.phantom.positions, scan.phantom.ids, radius=radius)
     guesses = _guesses(scan)
     by_frame = {int(f["frame"]): f for f in markers["frames"]}
+    depth = shadow_depth(markers, scan.config.markers.diameter, cam)
+    if depth is not None and abs(np.log(depth / cam.sod)) > np.log(_DEPTH_KEPT):
+        say(f"the markers' shadows put the phantom {depth:.0f} mm from the source, not the nominal sod "
+            f"{cam.sod:g} mm: the pose search looks there")
+        opt = replace(opt, search=replace(opt.search, depth_mm=depth))
     frames = []
     dets = {}
     order = [int(k) for k in scan.log.frame]

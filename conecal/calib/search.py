@@ -44,7 +44,9 @@ class SearchOptions:
     candidates whose RMS differ by less than this tie; guess_deg, guess_mm:
     how far a rough guess may be off; n_orientations: samples of SO(3) for
     a full search (about 12 deg apart at 8000); retry_px: when no candidate
-    of a 3-D phantom fits better than this, search again three times denser."""
+    of a 3-D phantom fits better than this, search again three times denser;
+    depth_mm: the phantom's distance from the source about which a full
+    orientation search tries depths (None: the nominal sod)."""
 
     min_spheres: int = 6
     gate_px: float = 6.0
@@ -54,6 +56,7 @@ class SearchOptions:
     guess_deg: float = 40.0
     guess_mm: float = 25.0
     n_orientations: int = 8000
+    depth_mm: float | None = None
 
 
 def _polish(cam: Camera, shape: PhantomShape, xy: np.ndarray, cand: Candidate, gates=(12.0, 6.0)) -> Candidate:
@@ -138,14 +141,14 @@ def search_frame(cam: Camera, shape: PhantomShape, xy: np.ndarray, guess=None,
         return SearchResult(rejected("few_markers", f"{len(xy)} markers usable, fewer than {opt.min_spheres}"))
     raw = planar_candidates(cam, shape, xy) if shape.lattice is not None else []
     if not raw:
-        raw = voted_candidates(cam, shape, xy, guess, opt.n_orientations)
+        raw = voted_candidates(cam, shape, xy, guess, opt.n_orientations, depth=opt.depth_mm)
         if guess is not None and not raw:
-            raw = voted_candidates(cam, shape, xy, None, opt.n_orientations)
+            raw = voted_candidates(cam, shape, xy, None, opt.n_orientations, depth=opt.depth_mm)
     cands = [_polish(cam, shape, xy, c, gates=(3 * opt.gate_px, opt.gate_px)) for c in raw]
     cands = [c for c in cands if len(c.sph) >= 4 and np.isfinite(c.rms_px)]
     if shape.lattice is None and (not cands or min(c.rms_px for c in cands) > opt.retry_px):
         # nothing fits well (a crowded view of a 3-D phantom): a denser second search
-        more = voted_candidates(cam, shape, xy, None, 3 * opt.n_orientations, seed=11)
+        more = voted_candidates(cam, shape, xy, None, 3 * opt.n_orientations, seed=11, depth=opt.depth_mm)
         cands += [c for c in (_polish(cam, shape, xy, c, gates=(3 * opt.gate_px, opt.gate_px)) for c in more)
                   if len(c.sph) >= 4 and np.isfinite(c.rms_px)]
     if cands:

@@ -121,18 +121,20 @@ def _hypothesis_pose(cam: Camera, R, z, oc, orr, pc):
 
 
 def voted_candidates(cam: Camera, shape: PhantomShape, xy: np.ndarray, guess=None, n_orientations: int = 8000,
-                     keep: int = 20, seed: int = 7) -> list[Candidate]:
+                     keep: int = 20, seed: int = 7, depth: float | None = None) -> list[Candidate]:
     """Orientation samples x depths (coarse), then a finer local vote about each
-    of the ``keep`` best distinct coarse hypotheses."""
+    of the ``keep`` best distinct coarse hypotheses. Depths: 0.85-1.17 of
+    ``depth`` (mm from the source; default the nominal sod), or the guess's."""
     P = shape.points - shape.points.mean(0)
     pc = shape.points.mean(0)
-    spacing_px = shape.spacing_mm * cam.focal_px.mean() / cam.sod
+    depth = cam.sod if depth is None else depth
+    spacing_px = shape.spacing_mm * cam.focal_px.mean() / depth
     if guess is not None:
         Rs = _orientations(0, guess[0])
         depths = [float((guess[0] @ pc)[2] + guess[1][2] + cam.sod)]
     else:
         Rs = _orientations(n_orientations, seed=seed)
-        depths = [cam.sod * s for s in (0.85, 0.93, 1.0, 1.08, 1.17)]
+        depths = [depth * s for s in (0.85, 0.93, 1.0, 1.08, 1.17)]
     cell = max(6.0, CELL_FRACTION * spacing_px)
     hyps = _vote(cam, P, xy, Rs, depths, cell, keep)
     coarse, seen, out = [], [], []
