@@ -67,3 +67,23 @@ def test_detect_finds_the_same_markers_when_the_nominal_magnification_is_25_perc
         b = sorted((m["x"], m["y"]) for m in fb["markers"])
         assert len(a) == len(b)
         assert np.abs(np.array(a) - np.array(b)).max() < 0.02
+
+
+def test_a_blob_without_sigma_never_becomes_a_marker():
+    """The independent renderer's ball phantom, nominal magnification 25 %
+    low, searched at the typed size (as with --diameter-px): a merged blob
+    whose centroid had no sigma was taken for an unsplit pair, and its
+    infinite sigma passed to a neighbour; the scan's whole markers file was
+    then invalid (exit 1, nothing written)."""
+    from benchmarks import carm_images as gen
+    from conecal.detect import DetectOptions, detect_frame
+    from conecal.detect.noise import noise_correlation, noise_pixel
+
+    sc = gen._setup("ball3d_ii_m25", 1)
+    g8 = gen.render_frame(sc, 7)[0]
+    a = (-np.log(np.maximum(g8.astype(np.float64) / 255.0, 1e-6))).astype(np.float32)
+    mid = (-np.log(np.maximum(gen.render_frame(sc, 6)[0].astype(np.float64) / 255.0, 1e-6))).astype(np.float32)
+    opt = DetectOptions(diameter_px=(5.582, 14.886), pixel_noise=noise_pixel(mid), noise_kappa=noise_correlation(mid))
+    blobs = detect_frame(a, opt)
+    assert len(blobs) >= 20
+    assert all(np.isfinite([b.x, b.y, b.sigma]).all() for b in blobs)

@@ -80,7 +80,9 @@ def detect_frame(a: np.ndarray, opt: DetectOptions) -> list[Blob]:
                 and all(np.hypot(b2.x - o.x, b2.y - o.y) > 0.8 * max(o.radius, b2.radius) for o in out)):
             out.append(b2)
     out = [elongation_bound(b, opt.blur_px, opt.max_anisotropy) if "overlap" in b.flags else b for b in out]
-    return hidden_pairs(a, out, opt.blur_px)
+    # (a marker is a measured centre with a sigma: one without never leaves
+    # here, where it made the whole scan's markers file invalid)
+    return [b for b in hidden_pairs(a, out, opt.blur_px) if np.isfinite((b.x, b.y, b.sigma)).all()]
 
 
 def _typical(kept: list[Blob], opt: DetectOptions):
@@ -168,7 +170,9 @@ def measure_crowded(a: np.ndarray, kept: list[Blob], merged: list[Blob], opt: De
             # two shadows nearly on top of each other that no split separates
             # (an 8-bit log display deepens their overlap beyond a sum of
             # spheres): one marker between them, said to be one
-            pair = unsplit_pair(m, opt.blur_px) if is_pair(m, R1, mu1, opt.blur_px) else None
+            # (a blob whose centroid has no sigma, e.g. a strong peak handed on
+            # unmeasured, says nothing of where a pair lies)
+            pair = unsplit_pair(m, opt.blur_px) if np.isfinite(m.sigma) and is_pair(m, R1, mu1, opt.blur_px) else None
             if pair is not None and is_deep:
                 kept = [pair if b is m else b for b in kept]
             # (a deep blob is kept as measured alone: it is its own single)
