@@ -230,7 +230,8 @@ def test_a_winner_that_leaves_detections_unexplained_waits_for_the_search_near_i
     R, t = poses[4]
     turned = rotvec_to_matrix([0.0, 0.0, np.pi]) @ R
     wrong = Candidate(np.arange(18), rng.permutation(len(points))[:18], turned, t, 0.09)
-    fr = {"frame": 4, "status": rejected("residual", "0.42 px"), "search": SearchResult(rejected("residual", ""), wrong)}
+    fr = {"frame": 4, "status": rejected("residual", "0.42 px"),
+          "search": SearchResult(rejected("residual", ""), wrong)}
     # (the denser search returns the wrong labelling as the only one at the floor)
     monkeypatch.setattr(sl, "_decide", lambda *a, **k: (wrong, ""))
     b = _Bundle([poses[k] for k in range(9) if k != 4])

@@ -295,7 +295,9 @@ def _doubts(cam, points, xy, c: Candidate, mine: Candidate, n_mine: int, pooled:
     generator's right frames); one explaining one fewer far closer does
     (the right labelling of a grid under an unmodelled 2 px bump, 39
     spheres at 0.14 px, against a turned one's 40 at 0.23 px)."""
-    return len(c.sph) >= n_mine or _msac(cam, points, xy, c, pooled) < _msac(cam, points, xy, mine, pooled) - _MSAC_MARGIN
+    if len(c.sph) >= n_mine:
+        return True
+    return _msac(cam, points, xy, c, pooled) < _msac(cam, points, xy, mine, pooled) - _MSAC_MARGIN
 
 
 def _new(c: Candidate, current: Candidate | None) -> bool:
