@@ -371,10 +371,13 @@ def _doubted(b: Bundle, usable: list, settled: list, dets: dict, shape, points, 
         if verdict is None:
             continue
         cands = verdict.cands if isinstance(verdict, Tie) else [verdict[0]]
+        others = [c for c in cands if not same_pose(cam, shape, points, c, current)]
+        if not others:
+            continue
+        # (refitted only for a rival: most ok frames' ranking returns their own identity)
         mine = _refit(cam, points, xy, current, gate)
         mine = replace(mine, missing=unseen_spheres(cam, shape, mine.R, mine.t, mine.sph, xy))
-        others = [c for c in cands if not same_pose(cam, shape, points, c, current)
-                  and _doubts(cam, points, xy, c, mine, len(current.sph), pooled)]
+        others = [c for c in others if _doubts(cam, points, xy, c, mine, len(current.sph), pooled)]
         if others:
             yield fr, Tie(_tied(mine, others, tail=", one of them from the poses the neighbouring frames predict"),
                           [mine] + others, fr["search"].convention)

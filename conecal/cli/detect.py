@@ -72,8 +72,8 @@ def _say_size(s: float, diameter_px) -> None:
     """Tell the user when the shadows were not the size the nominal
     magnification says (measured over nominal ``s``) and were looked for at
     the measured size (``diameter_px``, px)."""
-    from ..detect.size import KEEP_WITHIN
+    from ..detect.size import rescaled
 
-    if s and not 1 / KEEP_WITHIN <= s <= KEEP_WITHIN:
+    if rescaled(s):
         info(f"the shadows measure {s:.2f}x the size markers.diameter and the nominal magnification give "
              f"(sdd/sod off, or another sphere size?): looked for {diameter_px[0]:.1f}-{diameter_px[1]:.1f} px")

@@ -170,9 +170,7 @@ def measure_crowded(a: np.ndarray, kept: list[Blob], merged: list[Blob], opt: De
             # two shadows nearly on top of each other that no split separates
             # (an 8-bit log display deepens their overlap beyond a sum of
             # spheres): one marker between them, said to be one
-            # (a blob whose centroid has no sigma, e.g. a strong peak handed on
-            # unmeasured, says nothing of where a pair lies)
-            pair = unsplit_pair(m, opt.blur_px) if np.isfinite(m.sigma) and is_pair(m, R1, mu1, opt.blur_px) else None
+            pair = unsplit_pair(m, opt.blur_px) if is_pair(m, R1, mu1, opt.blur_px) else None
             if pair is not None and is_deep:
                 kept = [pair if b is m else b for b in kept]
             # (a deep blob is kept as measured alone: it is its own single)

@@ -43,6 +43,12 @@ def size_ratio(diameters, shadow_px) -> float | None:
     return float(_RATIOS[int(np.argmin(cost))])
 
 
+def rescaled(s: float) -> bool:
+    """Whether a measured over typed size ``s`` (0: not measured) is far
+    enough off for the sizes looked for to follow it."""
+    return bool(s) and abs(np.log(s)) > np.log(KEEP_WITHIN)
+
+
 def measured_size(blobs: list, opt: DetectOptions) -> DetectOptions:
     """``opt`` with ``size_scale`` (the measured over typed shadow size, from
     ``blobs``: one frame's shadows found with ``opt``; its unflagged ones, or
@@ -57,7 +63,7 @@ def measured_size(blobs: list, opt: DetectOptions) -> DetectOptions:
     s = size_ratio([2.0 * b.radius for b in use], opt.shadow_px)
     if s is None:
         return opt
-    if abs(np.log(s)) <= np.log(KEEP_WITHIN):
+    if not rescaled(s):
         return replace(opt, size_scale=s)
     return replace(opt, size_scale=s, diameter_px=tuple(float(d * s) for d in opt.diameter_px),
                    shadow_px=tuple(float(d * s) for d in opt.shadow_px))

@@ -144,8 +144,10 @@ def is_pair(m, R1: float, mu1, blur: float) -> bool:
     A phantom's larger ball is as wide across as along; on an 8-bit log
     display a lone sphere on a thicker body holds up to 1.9x the attenuation
     (stretched to 1.07 by an intensifier's periphery); on a real intensifier
-    recording lone spheres at the periphery read 1.5-1.56x at 1.11-1.18."""
-    if mu1 is None or m.anisotropy < _PAIR_ANISOTROPY:
+    recording lone spheres at the periphery read 1.5-1.56x at 1.11-1.18.
+    A blob whose centroid has no sigma (a strong peak handed on unmeasured)
+    says nothing of where a pair lies: never one."""
+    if mu1 is None or m.anisotropy < _PAIR_ANISOTROPY or not np.isfinite(m.sigma):
         return False
     one = moment_trace(R1, blur) / 2
     return _PAIR_NARROWEST <= _moments(m, blur)[1] / one <= 1.3 and 1.7 <= m.mu_px * m.radius**3 / (mu1 * R1**3) <= 2.8
