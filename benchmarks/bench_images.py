@@ -14,7 +14,12 @@ calibration (``calibrate_free``, default options) on its markers. Printed:
 spheres found of those in the field and not truncated, by overlap; RMS and
 pull std per flag class; false detections; frames ok / ambiguous /
 rejected; wrong ok (an ok frame whose labels are not the true ones up to
-the phantom's symmetry); reprojection RMS; held-out 3-D points' RMS.
+the symmetry of the spheres it matched) and turned ok (right up to that, but
+no symmetry of the whole phantom: the pose is turned); reprojection RMS;
+held-out 3-D points' RMS (carried through the symmetry a frame was labelled by).
+``--gen carm_images2``: a second renderer, written by another helper session
+without conecal's code (a helix cylinder and grids on a flat panel and an
+intensifier, multi-page flats, a flat black outside the intensifier's field).
 
     python benchmarks/bench_images.py [--cases ball3d_ii grid_ii] [--seeds 1 2]
 """
@@ -34,8 +39,8 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-import carm_images as gen  # noqa: E402
-from bench_free import identity_right  # noqa: E402
+import importlib  # noqa: E402
+from bench_free import identity_map, whole_symmetry  # noqa: E402
 from conecal.calib.run import FreeOptions, calibrate_free  # noqa: E402
 from conecal.calib.document import free_document  # noqa: E402
 from conecal.scan import load_scan  # noqa: E402
@@ -104,7 +109,7 @@ def run_case(gen, name: str, seed: int, root: Path) -> dict:
     t_fit = time.perf_counter() - t1
     doc = free_document(res, FreeOptions(), {"format": "conecal-poses/1"})
     b = res.bundle
-    n_ok = n_amb = wrong = 0
+    n_ok = n_amb = wrong = turned = 0
     held = []
     for fr, f in zip(doc["frames"], res.frames):
         st = fr["status"]
@@ -119,12 +124,17 @@ def run_case(gen, name: str, seed: int, root: Path) -> dict:
         for d, sid in fr.get("matched", []):
             if sid in either.get((fr["frame"], d), ()):
                 ids[d] = sid
-        if not identity_right(fr, ids, scan.phantom):
+        to_ours = identity_map(fr, ids, scan.phantom)
+        if to_ours is None:
             wrong += 1
             continue
+        if not whole_symmetry(to_ours, scan.phantom.positions):
+            turned += 1     # right projections, the pose turned: wrong for a reconstruction
         h = next(h for h in truth["heldout"] if h["frame"] == fr["frame"])
         if h["points"]:
-            P, Q = np.array(h["points"]), np.array(h["pixels"])
+            # (labelled by a symmetry of the phantom, the pose is the symmetric
+            # one: the held-out points, in the true phantom frame, are carried along)
+            P, Q = to_ours(np.array(h["points"])), np.array(h["pixels"])
             held.append(np.sum((b.predict(P, np.full(len(P), f["slot"])) - Q) ** 2, 1))
     return {"case": name, "seed": seed,
             "found": {c: f"{found[c]}/{n_in[c]}" for c in n_in},
@@ -132,6 +142,7 @@ def run_case(gen, name: str, seed: int, root: Path) -> dict:
             "pull_std": {k: [round(float(np.std(v)), 2), round(float(mad_sigma(v)), 2), len(v) // 2]
                          for k, v in sorted(pulls.items())},
             "false": false, "frames": len(doc["frames"]), "ok": n_ok, "ambiguous": n_amb, "wrong_ok": wrong,
+            "turned_ok": turned,
             "rms_fit_px": doc["summary"]["rms_px"], "family": doc["distortion"]["family"] if doc["distortion"] else
             "none", "heldout_rms_px": float(np.sqrt(np.mean(np.concatenate(held)))) if held else None,
             "time_detect_s": round(t_detect, 1), "time_fit_s": round(t_fit, 1)}
@@ -142,9 +153,11 @@ def main(argv=None) -> int:
     ap.add_argument("--cases", nargs="*")
     ap.add_argument("--seeds", type=int, nargs="*", default=[1])
     ap.add_argument("--work", type=Path, help="keep the cases here (default: a temporary folder)")
+    ap.add_argument("--gen", default="carm_images", help="renderer module in benchmarks/ (carm_images, carm_images2)")
     a = ap.parse_args(argv)
+    gen = importlib.import_module(a.gen)
     cases = a.cases or list(gen.CASES)
-    print("# bench_images: cases from benchmarks/carm_images.py (independent renderer)")
+    print(f"# bench_images: cases from benchmarks/{a.gen}.py (independent renderer)")
     with tempfile.TemporaryDirectory() as tmp:
         root = a.work or Path(tmp)
         for seed in a.seeds:

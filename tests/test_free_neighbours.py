@@ -260,3 +260,36 @@ def test_a_rival_doubts_an_identification_by_count_or_by_a_clearly_better_fit():
     assert _doubts(CAM, pts, xy, close, bent, len(bent.sph), pooled)
     assert not _doubts(CAM, pts, xy, close, same, len(same.sph), pooled)
     assert _doubts(CAM, pts, xy, same, bent, len(bent.sph), pooled)   # as many: always a rival
+
+
+def test_a_grids_turns_put_every_sphere_where_it_was_and_the_right_one_wins_back():
+    """``lattice.turned``: each relabelling by a turn of the whole lattice,
+    posed alike, projects its spheres where the original's were (the grid's
+    missing corner drops one); ranked with the calibrated camera, a frame
+    labelled with the grid turned gets its right labelling back from them
+    (it explains the detection the turn put on the hole)."""
+    from conecal.calib.lattice import turned
+    from conecal.calib.run import FreeOptions
+    from conecal.calib.second_look import Tie, _rank
+
+    R, t = _sweep(np.random.default_rng(4))[5]
+    pts = SHAPE.points
+    det = np.arange(len(pts))
+    true = Candidate(det, det.copy(), R, t, 0.03)
+    turns = turned(SHAPE, pts, true)
+    assert len(turns) == 7     # a square lattice: 8 maps, the identity left out
+    for c in turns:
+        assert len(c.sph) >= len(pts) - 1
+        assert np.allclose(CAM.project(pts[c.sph] @ c.R.T + c.t), CAM.project(pts[true.sph] @ R.T + t)[c.det],
+                           atol=1e-6)
+    xy = CAM.project(pts @ R.T + t) + np.random.default_rng(1).normal(0, 0.03, (len(pts), 2))
+    wrong = next(c for c in turns if not np.array_equal(c.sph, c.det))
+    alone = _rank(CAM, SHAPE, pts, xy, [wrong], 0.5, 0.05, FreeOptions())
+    assert not isinstance(alone, Tie) and alone[0].sph.tolist() != alone[0].det.tolist()
+    got = _rank(CAM, SHAPE, pts, xy, [wrong] + turned(SHAPE, pts, wrong), 0.5, 0.05, FreeOptions())
+    best = got.cands[0] if isinstance(got, Tie) else got[0]
+    # (the best explains the most: the right labelling, or its twin by the
+    # grid's one symmetry, the same image)
+    twin = SHAPE.symmetries[0][0] @ SHAPE.lattice.T
+    right = [np.arange(len(pts)), [SHAPE.lattice_index()[tuple(v)] for v in (twin.T + SHAPE.symmetries[0][1])]]
+    assert any(np.array_equal(best.sph, np.asarray(r)[best.det]) for r in right)

@@ -180,3 +180,55 @@ def test_folder_of_tiffs_is_a_stack(small_linear_scan, tmp_path):
     edit_yaml(dst, lambda c: c.__setitem__("projections", "proj"))
     s = load_scan(dst)
     assert np.array_equal(s.stack.read(3), stack[3])
+
+
+def _raw_scan(tmp_path, frames, flat, dark, **imwrite):
+    """A scan of ``frames`` (raw counts) with ``flat`` and ``dark`` as given."""
+    from conecal.simulate import linear_raster, write_scan
+
+    sc = linear_raster(1, rows=frames.shape[1], cols=frames.shape[2], counts=(1, 1, 2), steps=(1, 1, 1),
+                       diameter=1.0)
+    d = write_scan(sc, tmp_path / "raw", values="raw")
+    tifffile.imwrite(d / "projections.tif", frames, **(imwrite or {"photometric": "minisblack"}))
+    tifffile.imwrite(d / "flat.tif", flat)
+    tifffile.imwrite(d / "dark.tif", dark)
+    return d
+
+
+def test_a_grey_image_stored_as_colour_and_a_stack_of_flats_in_one_page_are_read(tmp_path):
+    # an image viewer's RGB export of a grey radiograph; flats written by
+    # tifffile as one planar four-sample page (read as RGB and alpha)
+    rng = np.random.default_rng(0)
+    grey = (rng.random((2, 24, 32)) * 150 + 50).astype(np.uint8)
+    flats = np.full((4, 24, 32), 240, np.uint16)
+    flats[1] = 225       # the colour samples' mean is 235
+    flats[3] = 0         # the alpha sample is left out
+    d = _raw_scan(tmp_path, np.repeat(grey[..., None], 3, -1), flats, np.zeros((24, 32), np.uint16),
+                  photometric="rgb")
+    s = load_scan(d)
+    assert s.stack.read_raw(1).dtype == np.uint8 and np.array_equal(s.stack.read_raw(1), grey[1])
+    assert np.allclose(s.stack.read(1), -np.log(grey[1] / 235.0), atol=1e-5)
+
+
+def test_an_intensifiers_dark_surround_in_the_flat_reads_as_no_transmission(tmp_path):
+    # outside an intensifier's circular field the flat is as dark as the dark image
+    yy, xx = np.mgrid[0:40, 0:40]
+    inside = np.hypot(xx - 19.5, yy - 19.5) < 18
+    flat = np.where(inside, 200, 0).astype(np.uint8)
+    frames = np.repeat(np.where(inside, 100, 0).astype(np.uint8)[None], 3, 0)
+    d = _raw_scan(tmp_path, frames, flat, np.zeros((40, 40), np.uint8))
+    s = load_scan(d)
+    a = s.stack.read(0)
+    assert s.stack.dead_pixels == int((~inside).sum())
+    assert np.allclose(a[inside], np.log(2.0), atol=1e-5)
+    assert (a[~inside] > 10).all()     # as dark as detect's invalid pixels, not NaN
+    res = CliRunner().invoke(cli, ["detect", str(d), "-o", str(tmp_path / "m.json")])
+    assert res.exit_code == 0, res.output
+    assert "not brighter than the dark image" in res.output
+
+
+def test_a_flat_darker_than_the_dark_almost_everywhere_is_bad_input(tmp_path):
+    frames = np.full((3, 20, 20), 100, np.uint16)
+    d = _raw_scan(tmp_path, frames, np.full((20, 20), 50, np.uint16), np.full((20, 20), 60, np.uint16))
+    res = run_detect(d, tmp_path)
+    assert_input_error(res, "flat.tif", "not brighter than the dark image", tmp_path=tmp_path)

@@ -11,7 +11,7 @@ from scipy.spatial import cKDTree
 
 from .camera import Camera
 from .candidate import Candidate
-from .phantom import PhantomShape
+from .phantom import LATTICE_MAPS, PhantomShape
 
 _UNIMODULAR = tuple(M for M in (np.array(m).reshape(2, 2) - 1 for m in np.ndindex(3, 3, 3, 3))
                     if abs(round(np.linalg.det(M))) == 1)
@@ -156,4 +156,41 @@ def planar_candidates(cam: Camera, shape: PhantomShape, xy: np.ndarray) -> list[
             H = homography(plane[sph], xy[idx[inside]])
             R, t = pose_from_homography(cam, shape, H)
             out.append(Candidate(idx[inside], sph, R, t, how="lattice", lattice_map=(mi, o)))
+    return out
+
+
+def turned(shape: PhantomShape, points: np.ndarray, c: Candidate) -> list[Candidate]:
+    """Candidate ``c`` relabelled by every turn of the phantom's whole lattice
+    (a square grid's 90 deg turns and views from behind, a rectangle's half
+    turns; about the lattice's bounding box): each detection keeps its place
+    and takes the sphere its sphere turns onto (none where that is a hole),
+    and the pose is turned alike, so that the relabelled spheres land where
+    the detections are. Where shadows merge (a grid seen nearly edge-on) the
+    image lattice grows wrong and the search may offer only a turned
+    identification; the right one is among these. ``points`` (n, 3) mm."""
+    if shape.lattice is None:
+        return []
+    G = shape.basis.T @ shape.basis
+    lat = shape.lattice_index()
+    out = []
+    for M in LATTICE_MAPS:
+        if np.array_equal(M, np.eye(2, dtype=int)) or \
+                not np.allclose(M.T @ G @ M, G, rtol=0, atol=3e-3 * np.abs(G).max()):
+            continue
+        m = shape.lattice @ M.T
+        o = shape.lattice.min(0) - m.min(0)
+        if not np.array_equal(m.max(0) + o, shape.lattice.max(0)):
+            continue
+        to = [lat.get(tuple(int(v) for v in m[k] + o)) for k in range(len(shape.lattice))]
+        keep = np.array([to[s] is not None for s in c.sph], bool)
+        if keep.sum() < 4:
+            continue
+        old, new = c.sph[keep], np.array([to[s] for s in c.sph[keep]])
+        # the rigid motion carrying each sphere onto its turned place (Kabsch)
+        a, b = points[old] - points[old].mean(0), points[new] - points[new].mean(0)
+        U, _, Vt = np.linalg.svd(b.T @ a)
+        Rg = U @ np.diag([1.0, 1.0, np.linalg.det(U @ Vt)]) @ Vt
+        og = points[new].mean(0) - Rg @ points[old].mean(0)
+        R = c.R @ Rg.T
+        out.append(Candidate(c.det[keep], new, R, c.t - R @ og, how=f"{c.how}, its lattice turned"))
     return out

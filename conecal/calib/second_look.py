@@ -34,6 +34,7 @@ import numpy as np
 from ..documents.status import OK, ambiguous
 from .bundle import Bundle
 from .candidate import Candidate, assign, refine_pose
+from .lattice import turned
 from .neighbours import by_neighbours, conventional, guesses, jumps, predicted, same_pose
 from .search import search_frame, unseen_spheres
 
@@ -50,6 +51,8 @@ _EXPLAINED_SHARE = 0.5
 # less a candidate must cost than the one explaining the most detections to tie
 _MSAC_CAP = 9.0
 _MSAC_MARGIN = 2 * _MSAC_CAP
+# how a candidate relabelled by a grid's turn says so (``lattice.turned``)
+_TURNED = "its lattice turned"
 
 
 def _refit(cam, points: np.ndarray, xy: np.ndarray, c: Candidate, gate: float) -> Candidate:
@@ -97,7 +100,8 @@ def second_look(b: Bundle, out: list, usable: list, dets: dict, shape, points: n
         if not _unexplained(n, len(d)):
             continue
         current = Candidate(np.asarray(d), np.asarray(p), b.R[s], b.t[s], how=fr["search"].best.how)
-        verdict = _decide(cam, dist, shape, points, dets[fr["frame"]][0], [current], gate, pooled, opt)
+        verdict = _decide(cam, dist, shape, points, dets[fr["frame"]][0], [current], gate, pooled, opt,
+                          turns=True)
         if verdict is None or isinstance(verdict, Tie):
             fr["status"] = ambiguous("ambiguous_identity", verdict.sentence if verdict else "no identification "
                                      "explains this frame's markers at the noise floor with the calibrated camera")
@@ -225,12 +229,15 @@ def _searched_near(cam, dist, shape, points, posed: dict, ties: dict, dets: dict
             yield fr, verdict
 
 
-def _decide(cam, dist, shape, points, xy, old: list, gate: float, pooled: float, opt):
+def _decide(cam, dist, shape, points, xy, old: list, gate: float, pooled: float, opt, turns: bool = False):
     """The frame searched again on its undistorted detections ``xy``; with
-    ``old`` candidates, all refitted with the calibrated camera. Returns
-    (winner, convention), a Tie when identifications tie, or None when
-    none is at the noise floor."""
+    ``old`` candidates (and, with ``turns``, their relabellings by a grid's
+    turns: an ok frame's identity), all refitted with the calibrated camera.
+    Returns (winner, convention), a Tie when identifications tie, or None
+    when none is at the noise floor."""
     xy = dist.undistort(xy) if dist is not None else xy
+    if turns:
+        old = old + [c for o in old for c in turned(shape, points, o)]
     again = search_frame(cam, shape, xy, None, replace(opt.search, n_orientations=3 * opt.search.n_orientations))
     new = [again.best, *again.alternatives] if again.best is not None else []
     return _rank(cam, shape, points, xy, old + new, gate, pooled, opt, again.convention)
@@ -343,14 +350,18 @@ def _doubted(b: Bundle, usable: list, settled: list, dets: dict, shape, points, 
     poses_of = {k: (b.R[fr["slot"]], b.t[fr["slot"]]) for k, fr in posed.items()}
     preds = predicted(b.camera, shape, points, poses_of)
     off = jumps(b.camera, shape, points, poses_of, preds)
-    for k, poses in preds.items():
-        fr = posed[k]
+    for k, fr in posed.items():
+        poses = preds.get(k, [])
+        if not poses and shape.lattice is None:
+            continue
         cam, dist = b.frame_camera(fr["slot"]), b.frame_distortion(fr["slot"])
         xy = dets[k][0]
         xy = dist.undistort(xy) if dist is not None else xy
         d, p = fr["pairs"]
         current = Candidate(np.asarray(d), np.asarray(p), b.R[fr["slot"]], b.t[fr["slot"]], how=fr["search"].best.how)
-        starts = []
+        # (a grid's turns: where shadows merge, the search may have offered
+        # only a turned labelling, and the right one explains more)
+        starts = turned(shape, points, current)
         for R, t in poses:
             # (a neighbour's pose is tens of px off: each detection goes to the
             # nearest sphere within half the spheres' median spacing)
@@ -377,10 +388,19 @@ def _doubted(b: Bundle, usable: list, settled: list, dets: dict, shape, points, 
         # (refitted only for a rival: most ok frames' ranking returns their own identity)
         mine = _refit(cam, points, xy, current, gate)
         mine = replace(mine, missing=unseen_spheres(cam, shape, mine.R, mine.t, mine.sph, xy))
-        others = [c for c in others if _doubts(cam, points, xy, c, mine, len(current.sph), pooled)]
+        # (a grid's turn doubts only by explaining more detections at no more
+        # cost: one that explains as many is its visible part's symmetry, which
+        # the search's choice already met, and one bent to keep a sphere more
+        # under a bump the model lacks costs more: a sweep's grid lost 4 ok
+        # frames to such turns)
+        others = [c for c in others if _doubts(cam, points, xy, c, mine, len(current.sph), pooled)
+                  and (_TURNED not in c.how or (len(c.sph) > len(mine.sph) and
+                                                _msac(cam, points, xy, c, pooled) <= _msac(cam, points, xy, mine,
+                                                                                           pooled)))]
         if others:
-            yield fr, Tie(_tied(mine, others, tail=", one of them from the poses the neighbouring frames predict"),
-                          [mine] + others, fr["search"].convention)
+            tail = (", one of them the grid turned" if any(_TURNED in c.how for c in others)
+                    else ", one of them from the poses the neighbouring frames predict")
+            yield fr, Tie(_tied(mine, others, tail=tail), [mine] + others, fr["search"].convention)
 
 
 def _same(a: Candidate, b: Candidate) -> bool:

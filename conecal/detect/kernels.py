@@ -35,13 +35,19 @@ def _outside_all(i, j, ox, oy, orad):
 
 
 @njit(cache=True)
-def fit_background(roi, inv, cx, cy, r_in, r_out, rw, ox, oy, orad, quad_min):
+def fit_background(roi, inv, cx, cy, r_in, r_out, rw, ox, oy, orad, quad_min, f_quad=0.0):
     """Robust polynomial background from the annulus ``r_in..r_out`` about (cx, cy).
 
     Neighbour discs (ox, oy, orad) are left out unless that leaves < 30 % of
     the ring; pixels flagged in ``inv`` never count. The fit is quadratic
     when the ring is nearly whole and has more than ``quad_min`` pixels,
-    planar otherwise; 3 rounds of rejection at 3.5 sigma.
+    planar otherwise; 3 rounds of rejection at 3.5 sigma. With ``f_quad`` >
+    0 the quadratic terms are kept only when they explain the ring's inliers
+    better than a plane by that F ratio: on an annulus the curvature
+    x^2 + y^2 is nearly constant, so a curvature the ring does not show
+    moves the value extrapolated to the centre by several times the ring's
+    noise over its pixels (and a shadow's second moment, which weighs the
+    window's rim by rho^2, by more than a small sphere's whole size).
 
     Returns (coef[6], quad, sigma, n_inliers, rms dx of inliers, hidden
     fraction of the window); n_inliers = 0 on failure.
@@ -136,6 +142,35 @@ def fit_background(roi, inv, cx, cy, r_in, r_out, rw, ox, oy, orad, quad_min):
             keep[t] = k
         if not changed:
             break
+    if quad and f_quad > 0:
+        # the plane on the same inliers, and the F ratio of the three curvature terms
+        AtA = np.zeros((3, 3))
+        Atz = np.zeros(3)
+        cnt = 0
+        rss_q = 0.0
+        for t in range(n):
+            if not keep[t]:
+                continue
+            cnt += 1
+            rss_q += res[t] * res[t]
+            _design(X[t], Y[t], False, row)
+            for a in range(3):
+                Atz[a] += row[a] * Z[t]
+                for b in range(3):
+                    AtA[a, b] += row[a] * row[b]
+        if cnt > 12:
+            sol = np.linalg.solve(AtA, Atz)
+            rss_p = 0.0
+            for t in range(n):
+                if keep[t]:
+                    v = Z[t] - sol[0] - sol[1] * X[t] - sol[2] * Y[t]
+                    rss_p += v * v
+            if (rss_p - rss_q) / 3.0 < f_quad * rss_q / (cnt - 6):
+                quad = False
+                for a in range(3):
+                    coef[a] = sol[a]
+                for a in range(3, 6):
+                    coef[a] = 0.0
     n_in = 0
     sdx = 0.0
     for t in range(n):
@@ -302,7 +337,7 @@ def warm_up() -> None:
     forked workers inherit them instead of each loading them again."""
     roi = np.zeros((16, 16), np.float32)
     e = np.zeros(0)
-    coef = fit_background(roi, np.zeros((0, 0), np.bool_), 8.0, 8.0, 4.0, 7.0, 3.0, e, e, e, 150)[0]
+    coef = fit_background(roi, np.zeros((0, 0), np.bool_), 8.0, 8.0, 4.0, 7.0, 3.0, e, e, e, 150, 4.0)[0]
     subtract_background(roi, coef, 8.0, 8.0)
     window_moments(roi, coef, 8.0, 8.0, 8.0, 8.0, 3.0)
     for jacobian in (False, True):

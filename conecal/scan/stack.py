@@ -23,12 +23,36 @@ from ..errors import InputError
 _T_FLOOR = 1e-6
 
 
+# A flat whose gain is zero over more than this share of the detector is a
+# wrong file, not an intensifier's dark surround.
+_DEAD_SHARE = 0.5
+
+
+def grey(page, img: np.ndarray) -> np.ndarray:
+    """A page stored with several samples per pixel (an image viewer's RGB
+    export of a grey radiograph; a stack written as one planar page) read as
+    the mean of its samples, alpha channels left out. Other pages as read."""
+    n = int(getattr(page, "samplesperpixel", 1) or 1)
+    if n <= 1 or img.ndim != 3:
+        return img
+    axis = 0 if int(getattr(page, "planarconfig", 1)) == 2 else -1
+    extra = tuple(getattr(page, "extrasamples", ()) or ())
+    # TIFF ExtraSamples 1 and 2: associated and unassociated alpha
+    alpha = {n - len(extra) + i for i, e in enumerate(extra) if int(e) in (1, 2)}
+    keep = [i for i in range(img.shape[axis]) if i not in alpha] or [0]
+    samples = np.take(img, keep, axis=axis)
+    first = np.take(samples, [0], axis=axis)
+    if (samples == first).all():     # grey stored as colour: as stored, its dtype kept
+        return np.squeeze(first, axis=axis)
+    return samples.astype(np.float64).mean(axis=axis)
+
+
 def _read_mean_image(path: Path, shape) -> np.ndarray:
     try:
         with tifffile.TiffFile(path) as tf:
             acc = None
             for k, page in enumerate(tf.pages):
-                img = page.asarray().astype(np.float64)
+                img = grey(page, page.asarray()).astype(np.float64)
                 if img.shape != tuple(shape):
                     raise InputError(f"{path}: page {k}: shape {img.shape}, expected {tuple(shape)} (rows, cols)")
                 acc = img if acc is None else acc + img
@@ -78,14 +102,23 @@ class ProjectionStack:
         else:
             raise InputError(f"{self.path}: file not found")
         self._flat = self._dark = None
+        self.dead_pixels = 0   # flat not brighter than dark (raw values)
         if values == "raw":
             self._dark = _read_mean_image(Path(dark), self.shape)
             flat_img = _read_mean_image(Path(flat), self.shape)
             gain = flat_img - self._dark
-            if np.any(gain <= 0):
-                k = np.flatnonzero(gain.reshape(-1) <= 0)[0]
+            dead = gain <= 0
+            if dead.mean() > _DEAD_SHARE:
+                k = np.flatnonzero(dead.reshape(-1))[0]
                 r, c = divmod(int(k), self.shape[1])
-                raise InputError(f"{flat}: pixel (row {r}, col {c}) is not brighter than the dark image")
+                raise InputError(f"{flat}: {dead.mean():.0%} of the pixels, the first at (row {r}, col {c}), are "
+                                 f"not brighter than the dark image")
+            # An intensifier's flat is black outside its circular field: those
+            # pixels never see the beam and read as no transmission, as detect
+            # takes the dark surround of a frame (the pixels' count is kept for
+            # the user to be told).
+            gain[dead] = np.inf
+            self.dead_pixels = int(dead.sum())
             self._flat = gain
 
     def __len__(self) -> int:
@@ -132,7 +165,7 @@ class ProjectionStack:
         return held[1]
 
     def read_raw(self, k: int) -> np.ndarray:
-        """Frame ``k`` as stored (no conversion)."""
+        """Frame ``k`` as stored (no conversion; a colour page as ``grey``)."""
         if not 0 <= k < self._n:
             raise IndexError(f"frame {k} out of range 0..{self._n - 1}")
         where = self._files[k] if self._files is not None else self.path
@@ -145,9 +178,11 @@ class ProjectionStack:
             return np.frombuffer(buf, dtype).reshape(self.shape)
         try:
             if self._files is not None:
-                img = tifffile.imread(self._files[k])
+                with tifffile.TiffFile(self._files[k]) as tf:
+                    img = grey(tf.pages[0], tf.pages[0].asarray())
             else:
-                img = self._handle().pages[k].asarray()
+                page = self._handle().pages[k]
+                img = grey(page, page.asarray())
         except Exception as exc:
             raise InputError(f"{where}: frame {k}: truncated or unreadable ({type(exc).__name__}: {exc})") from None
         if img.shape != self.shape:
