@@ -190,7 +190,8 @@ def _raw_scan(tmp_path, frames, flat, dark, **imwrite):
                        diameter=1.0)
     d = write_scan(sc, tmp_path / "raw", values="raw")
     tifffile.imwrite(d / "projections.tif", frames, **(imwrite or {"photometric": "minisblack"}))
-    tifffile.imwrite(d / "flat.tif", flat)
+    tifffile.imwrite(d / "flat.tif", flat, **({"photometric": "rgb", "planarconfig": "separate"} if flat.ndim == 3
+                                              else {}))
     tifffile.imwrite(d / "dark.tif", dark)
     return d
 
