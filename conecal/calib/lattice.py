@@ -13,6 +13,9 @@ from .camera import Camera
 from .candidate import Candidate
 from .phantom import LATTICE_MAPS, PhantomShape
 
+# how a candidate relabelled by a turn of the lattice says so (``turned``)
+TURNED = "its lattice turned"
+
 _UNIMODULAR = tuple(M for M in (np.array(m).reshape(2, 2) - 1 for m in np.ndindex(3, 3, 3, 3))
                     if abs(round(np.linalg.det(M))) == 1)
 
@@ -192,5 +195,5 @@ def turned(shape: PhantomShape, points: np.ndarray, c: Candidate) -> list[Candid
         Rg = U @ np.diag([1.0, 1.0, np.linalg.det(U @ Vt)]) @ Vt
         og = points[new].mean(0) - Rg @ points[old].mean(0)
         R = c.R @ Rg.T
-        out.append(Candidate(c.det[keep], new, R, c.t - R @ og, how=f"{c.how}, its lattice turned"))
+        out.append(Candidate(c.det[keep], new, R, c.t - R @ og, how=f"{c.how}, {TURNED}"))
     return out

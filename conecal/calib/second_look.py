@@ -14,7 +14,8 @@ explains as many spheres and fits by more than ``mirror_chi2`` better than
 every other, at the noise floor itself, is the frame's identity. Every
 other ok frame is also refitted from the poses its neighbouring frames
 predict (and, when its pose jumps off the sweep, searched again near
-them): when an identification found that way explains as many detections
+them; a grid's also with its identity relabelled by the lattice's turns,
+which doubt it only by explaining more detections at no more cost): when an identification found that way explains as many detections
 and fits as well or better, the frame is ambiguous (its visible spheres
 admit the phantom turned); an ok frame's identity is never replaced here.
 A tied or unnamed frame of a phantom off a lattice is searched once more
@@ -34,7 +35,7 @@ import numpy as np
 from ..documents.status import OK, ambiguous
 from .bundle import Bundle
 from .candidate import Candidate, assign, refine_pose
-from .lattice import turned
+from .lattice import TURNED, turned
 from .neighbours import by_neighbours, conventional, guesses, jumps, predicted, same_pose
 from .search import search_frame, unseen_spheres
 
@@ -51,8 +52,6 @@ _EXPLAINED_SHARE = 0.5
 # less a candidate must cost than the one explaining the most detections to tie
 _MSAC_CAP = 9.0
 _MSAC_MARGIN = 2 * _MSAC_CAP
-# how a candidate relabelled by a grid's turn says so (``lattice.turned``)
-_TURNED = "its lattice turned"
 
 
 def _refit(cam, points: np.ndarray, xy: np.ndarray, c: Candidate, gate: float) -> Candidate:
@@ -394,11 +393,11 @@ def _doubted(b: Bundle, usable: list, settled: list, dets: dict, shape, points, 
         # under a bump the model lacks costs more: a sweep's grid lost 4 ok
         # frames to such turns)
         others = [c for c in others if _doubts(cam, points, xy, c, mine, len(current.sph), pooled)
-                  and (_TURNED not in c.how or (len(c.sph) > len(mine.sph) and
+                  and (TURNED not in c.how or (len(c.sph) > len(mine.sph) and
                                                 _msac(cam, points, xy, c, pooled) <= _msac(cam, points, xy, mine,
                                                                                            pooled)))]
         if others:
-            tail = (", one of them the grid turned" if any(_TURNED in c.how for c in others)
+            tail = (", one of them the grid turned" if any(TURNED in c.how for c in others)
                     else ", one of them from the poses the neighbouring frames predict")
             yield fr, Tie(_tied(mine, others, tail=tail), [mine] + others, fr["search"].convention)
 
