@@ -124,7 +124,7 @@ def second_look(b: Bundle, out: list, usable: list, dets: dict, shape, points: n
         if fr["status"].reason not in _LOOK_AGAIN:
             continue
         old = [res.best, *res.alternatives] if res.best is not None else []
-        verdict = _decide(cam, dist, shape, points, dets[fr["frame"]][0], old, gate, pooled, opt)
+        verdict = _decide(cam, dist, shape, points, dets[fr["frame"]][0], old, gate, pooled, opt, turns=True)
         if verdict is None or isinstance(verdict, Tie):
             ties[fr["frame"]] = (fr, verdict or Tie(fr["status"].detail, []))
         elif shape.lattice is None and _unexplained(len(dets[fr["frame"]][0]), len(verdict[0].sph)):
@@ -230,8 +230,8 @@ def _searched_near(cam, dist, shape, points, posed: dict, ties: dict, dets: dict
 
 def _decide(cam, dist, shape, points, xy, old: list, gate: float, pooled: float, opt, turns: bool = False):
     """The frame searched again on its undistorted detections ``xy``; with
-    ``old`` candidates (and, with ``turns``, their relabellings by a grid's
-    turns: an ok frame's identity), all refitted with the calibrated camera.
+    ``old`` candidates (and, with ``turns``, their relabellings by the turns
+    of a grid's lattice), all refitted with the calibrated camera.
     Returns (winner, convention), a Tie when identifications tie, or None
     when none is at the noise floor."""
     xy = dist.undistort(xy) if dist is not None else xy
