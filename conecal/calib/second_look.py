@@ -99,8 +99,7 @@ def second_look(b: Bundle, out: list, usable: list, dets: dict, shape, points: n
         if not _unexplained(n, len(d)):
             continue
         current = Candidate(np.asarray(d), np.asarray(p), b.R[s], b.t[s], how=fr["search"].best.how)
-        verdict = _decide(cam, dist, shape, points, dets[fr["frame"]][0], [current], gate, pooled, opt,
-                          turns=True)
+        verdict = _decide(cam, dist, shape, points, dets[fr["frame"]][0], [current], gate, pooled, opt)
         if verdict is None or isinstance(verdict, Tie):
             fr["status"] = ambiguous("ambiguous_identity", verdict.sentence if verdict else "no identification "
                                      "explains this frame's markers at the noise floor with the calibrated camera")
@@ -124,7 +123,7 @@ def second_look(b: Bundle, out: list, usable: list, dets: dict, shape, points: n
         if fr["status"].reason not in _LOOK_AGAIN:
             continue
         old = [res.best, *res.alternatives] if res.best is not None else []
-        verdict = _decide(cam, dist, shape, points, dets[fr["frame"]][0], old, gate, pooled, opt, turns=True)
+        verdict = _decide(cam, dist, shape, points, dets[fr["frame"]][0], old, gate, pooled, opt)
         if verdict is None or isinstance(verdict, Tie):
             ties[fr["frame"]] = (fr, verdict or Tie(fr["status"].detail, []))
         elif shape.lattice is None and _unexplained(len(dets[fr["frame"]][0]), len(verdict[0].sph)):
@@ -228,15 +227,14 @@ def _searched_near(cam, dist, shape, points, posed: dict, ties: dict, dets: dict
             yield fr, verdict
 
 
-def _decide(cam, dist, shape, points, xy, old: list, gate: float, pooled: float, opt, turns: bool = False):
+def _decide(cam, dist, shape, points, xy, old: list, gate: float, pooled: float, opt):
     """The frame searched again on its undistorted detections ``xy``; with
-    ``old`` candidates (and, with ``turns``, their relabellings by the turns
-    of a grid's lattice), all refitted with the calibrated camera.
+    ``old`` candidates and (a grid's) their relabellings by the turns of its
+    lattice, all refitted with the calibrated camera.
     Returns (winner, convention), a Tie when identifications tie, or None
     when none is at the noise floor."""
     xy = dist.undistort(xy) if dist is not None else xy
-    if turns:
-        old = old + [c for o in old for c in turned(shape, points, o)]
+    old = old + [c for o in old for c in turned(shape, points, o)]
     again = search_frame(cam, shape, xy, None, replace(opt.search, n_orientations=3 * opt.search.n_orientations))
     new = [again.best, *again.alternatives] if again.best is not None else []
     return _rank(cam, shape, points, xy, old + new, gate, pooled, opt, again.convention)
