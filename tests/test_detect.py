@@ -249,7 +249,7 @@ def test_a_small_shadow_ringed_brighter_than_its_background_is_measured():
     a = 0.44 + 0.087 * np.sqrt(np.maximum(R * R - rho**2, 0.0)) - 0.012 * np.exp(-(((rho - 6.5) / 1.4) ** 2))
     a = cv2.GaussianBlur(a, (0, 0), 1.0) + np.random.default_rng(0).normal(0, 1e-4, (n, n))
     opt = DetectOptions(diameter_px=(4.5, 8.5), pixel_noise=1e-4, noise_kappa=1.0)
-    b = refine(a.astype(np.float32), 23.0, 25.0, 2.5, opt, ring=True)
+    b = refine(a.astype(np.float32), 23.0, 25.0, 2.5, opt, first=True)
     assert b is not None
     assert np.hypot(b.x - cx, b.y - cy) < 0.02
     assert 0.7 * R < b.radius < 1.3 * R

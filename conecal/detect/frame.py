@@ -135,13 +135,13 @@ def moment_trace(radius: float, blur: float) -> float:
 
 
 def refine(a: np.ndarray, x0: float, y0: float, r0: float, opt: DetectOptions, others=(), noise: float = 0.0,
-           invalid: np.ndarray | None = None, ring: bool = False, plane_test: bool = False) -> Blob | None:
+           invalid: np.ndarray | None = None, first: bool = False, plane_test: bool = False) -> Blob | None:
     """Sub-pixel centroid of the sphere shadow near (x0, y0) with radius guess r0.
 
     ``others``: (x, y, r) of neighbouring candidates, kept out of the background
     annulus; ``noise``: the frame's pixel noise sigma (for the clutter test).
-    ``ring``: a candidate peak measured first, which may be a lone shadow in a
-    bright ring (see below); ``plane_test``: its background's curvature kept
+    ``first``: a candidate peak of the frame's first pass, which may be a lone
+    shadow in a bright band (see below); ``plane_test``: its background's curvature kept
     only where the ring shows it (``_F_QUAD``). Returns None when no
     sphere-like shadow is there.
     """
@@ -227,7 +227,7 @@ def refine(a: np.ndarray, x0: float, y0: float, r0: float, opt: DetectOptions, o
         # integration add their variances
         m2 = Mxx + Myy - 2 * opt.blur_px**2 - 2 / 12
         r_m2 = float(np.sqrt(2.5 * m2)) if m2 > 0 else 0.0
-        if ring and r_m2 < _MOAT_SHARE * r_half and alone(x, y, r_out):
+        if first and r_m2 < _MOAT_SHARE * r_half and alone(x, y, r_out):
             # A ring brighter than the background round the shadow (a display
             # chain's edge enhancement) counts against the moment at its rho^2
             # weight: a small sphere's moment came out negative. Taken for that
@@ -409,9 +409,9 @@ def detect_blobs(a: np.ndarray, opt: DetectOptions):
                   and (o[0] - cx) ** 2 + (o[1] - cy) ** 2 < (4 * opt.diameter_px[1]) ** 2]
         others = [o for o in others if not any((o[0] - b.x) ** 2 + (o[1] - b.y) ** 2 < (0.8 * b.radius) ** 2 for b in blobs)] + \
                  [(b.x, b.y, b.radius) for b in blobs]
-        b = refine(a, cx, cy, r_guess, opt, others, noise, invalid, ring=True)
+        b = refine(a, cx, cy, r_guess, opt, others, noise, invalid, first=True)
         if b is None:
-            b = refine(a, cx, cy, r_guess, opt, others, noise, invalid, ring=True, plane_test=True)
+            b = refine(a, cx, cy, r_guess, opt, others, noise, invalid, first=True, plane_test=True)
         if b is None and h > 3 * opt.threshold and 2 * r_guess <= opt.diameter_px[1]:
             # a strong peak with no shadow of the expected size: the background
             # ring may lie inside a larger shadow (a big ball whose core an

@@ -35,6 +35,29 @@ def _outside_all(i, j, ox, oy, orad):
 
 
 @njit(cache=True)
+def _kept_fit(X, Y, Z, keep, quad):
+    """Least-squares coefficients (3 or 6, ``_design``'s order) of the points
+    ``keep`` marks, and how many they are (the solve is skipped below 6)."""
+    p = 6 if quad else 3
+    row = np.zeros(6)
+    AtA = np.zeros((p, p))
+    Atz = np.zeros(p)
+    cnt = 0
+    for t in range(X.shape[0]):
+        if not keep[t]:
+            continue
+        cnt += 1
+        _design(X[t], Y[t], quad, row)
+        for a in range(p):
+            Atz[a] += row[a] * Z[t]
+            for b in range(p):
+                AtA[a, b] += row[a] * row[b]
+    if cnt < 2 * p:
+        return np.zeros(p), cnt
+    return np.linalg.solve(AtA, Atz), cnt
+
+
+@njit(cache=True)
 def fit_background(roi, inv, cx, cy, r_in, r_out, rw, ox, oy, orad, quad_min, f_quad=0.0):
     """Robust polynomial background from the annulus ``r_in..r_out`` about (cx, cy).
 
@@ -103,21 +126,9 @@ def fit_background(roi, inv, cx, cy, r_in, r_out, rw, ox, oy, orad, quad_min, f_
     sig = 0.0
     res = np.empty(n)
     for _ in range(3):
-        AtA = np.zeros((p, p))
-        Atz = np.zeros(p)
-        cnt = 0
-        for t in range(n):
-            if not keep[t]:
-                continue
-            cnt += 1
-            _design(X[t], Y[t], quad, row)
-            for a in range(p):
-                Atz[a] += row[a] * Z[t]
-                for b in range(p):
-                    AtA[a, b] += row[a] * row[b]
+        sol, cnt = _kept_fit(X, Y, Z, keep, quad)
         if cnt < 2 * p:
             break
-        sol = np.linalg.solve(AtA, Atz)
         for a in range(p):
             coef[a] = sol[a]
         for a in range(p, 6):
@@ -144,22 +155,12 @@ def fit_background(roi, inv, cx, cy, r_in, r_out, rw, ox, oy, orad, quad_min, f_
             break
     if quad and f_quad > 0:
         # the plane on the same inliers, and the F ratio of the three curvature terms
-        AtA = np.zeros((3, 3))
-        Atz = np.zeros(3)
-        cnt = 0
         rss_q = 0.0
         for t in range(n):
-            if not keep[t]:
-                continue
-            cnt += 1
-            rss_q += res[t] * res[t]
-            _design(X[t], Y[t], False, row)
-            for a in range(3):
-                Atz[a] += row[a] * Z[t]
-                for b in range(3):
-                    AtA[a, b] += row[a] * row[b]
+            if keep[t]:
+                rss_q += res[t] * res[t]
+        sol, cnt = _kept_fit(X, Y, Z, keep, False)
         if cnt > 12:
-            sol = np.linalg.solve(AtA, Atz)
             rss_p = 0.0
             for t in range(n):
                 if keep[t]:
