@@ -19,6 +19,7 @@ import numpy as np
 from .frame import ROUND_ANISOTROPY, Blob, DetectOptions, chord_like, detect_blobs, refine, window_reach
 from .background import fit_profile, structured
 from .edge import CONE_OFFSET_PX, beside_edge
+from .rod import on_rods, rod_like
 from .overlap import components, fit_group, group_box, groups_of, joint_sigma, render_box
 from .split import elongation_bound, hidden_pairs, is_pair, peaks_in, split, unsplit_pair
 
@@ -64,6 +65,14 @@ def detect_frame(a: np.ndarray, opt: DetectOptions) -> list[Blob]:
     deep = [b for b in kept + spoilt if mu1 is not None and b.mu_px * b.radius**3 > 1.4 * mu1 * R1**3
             and (b.anisotropy > _DEEP_ANISOTROPY or b.mu_px > _DEEP_DENSITY * mu1)]
     seeds = _crowd_seeds(peaks, kept, R1, opt, strong)
+    # a peak as strong as a sphere's that no window measured (a textured
+    # background left the window's moment negative, or its size off): the
+    # joint model measures it alone, where it must earn its place as any seed
+    taken = [(b.x, b.y, max(b.radius, R1)) for b in kept + merged + spoilt] + [(x, y, R1) for x, y in seeds]
+    for px, py in strong:
+        if all((px - x) ** 2 + (py - y) ** 2 >= r * r for x, y, r in taken):
+            seeds.append((px, py))
+            taken.append((px, py, R1))
     # a seed where a shadow measured alone was disturbed (flagged clutter) is
     # measured as one: on a wall's edge, the edge's profile is removed first
     disturbed = {(x, y) for x, y in seeds if any((b.x - x) ** 2 + (b.y - y) ** 2 < b.radius**2
@@ -79,6 +88,8 @@ def detect_frame(a: np.ndarray, opt: DetectOptions) -> list[Blob]:
         if (b2 is not b and b2.anisotropy <= opt.max_anisotropy
                 and all(np.hypot(b2.x - o.x, b2.y - o.y) > 0.8 * max(o.radius, b2.radius) for o in out)):
             out.append(b2)
+    # (a wire's or a screw's length that a seed or a split took for a sphere)
+    out = [b for b, rod in zip(out, on_rods(a, out, opt.blur_px, invalid)) if not rod]
     out = [elongation_bound(b, opt.blur_px, opt.max_anisotropy) if "overlap" in b.flags else b for b in out]
     # (a marker is a measured centre with a sigma: one without never leaves
     # here, where it made the whole scan's markers file invalid)
@@ -184,6 +195,8 @@ def measure_crowded(a: np.ndarray, kept: list[Blob], merged: list[Blob], opt: De
                 singles.append(one)
             continue
         sph, on_edge = found
+        if rod_like(a, sph, opt.blur_px, [(b.x, b.y, b.radius) for b in kept if b is not m], invalid):
+            continue   # a wire's or a screw's length, cut into spheres' lengths
         gone.add(id(m))
         seeds = [p for p in seeds if (p[0] - m.x) ** 2 + (p[1] - m.y) ** 2 > (1.5 * m.radius + 2) ** 2]
         # (the parts of a blob across an edge: their group removes the edge's profile first)
@@ -293,6 +306,14 @@ def measure_crowded(a: np.ndarray, kept: list[Blob], merged: list[Blob], opt: De
                 break
             fit = refit(fit[1], [n for n in range(len(g)) if n not in bad])
             g = dropped(g, bad)
+        if fit is not None and len(g) == 1 and g[0] in alone:
+            # a seed with no neighbour claims one sphere: two shadows nearly on
+            # top of each other fitted as one read 3.6 px from either
+            # (no shadow measured alone to compare with: no claim)
+            x, y, R, mu = fit[1][0]
+            ref = [b for b in kept if not b.flags] or kept
+            if not ref or not _neighbours_size(R, mu, _nearest(x, y, ref), sized=False):
+                fit = None
         if fit is None:
             for i in g:
                 writes[i] = (None, False) if i in new else (replace(blobs[i], flags=sorted(set(blobs[i].flags)
@@ -323,7 +344,12 @@ def measure_crowded(a: np.ndarray, kept: list[Blob], merged: list[Blob], opt: De
         mask = [(b.x, b.y, b.radius) for b in blobs if (b.x - gx) ** 2 + (b.y - gy) ** 2 < (ext + 4 * R1) ** 2]
         return structured(a, gx, gy, ext / 3, opt.blur_px, noise, invalid, mask)
 
-    for g in groups_of(blobs, opt.blur_px):
+    groups = groups_of(blobs, opt.blur_px)
+    grouped = {i for g in groups for i in g}
+    # (a seed touching nothing: measured as a group of one)
+    alone = set(trial - grouped)
+    groups += [[i] for i in sorted(alone)]
+    for g in groups:
         s0 = np.array([[blobs[i].x, blobs[i].y, blobs[i].radius] for i in g])
         if _small(g, s0) or not _on_structure(a, g, s0):
             measure(g)
@@ -339,6 +365,11 @@ def measure_crowded(a: np.ndarray, kept: list[Blob], merged: list[Blob], opt: De
             for k in range(len(near), -1, -1):
                 if measure([i] + near[:k], only=i) or k <= 1 or i in trial:
                     break
+    for i in alone:
+        if out[i] is not None:
+            # (no neighbour: the model stood in for a background the window could
+            # not have, which is the clutter flag's meaning, not an overlap)
+            out[i] = replace(out[i], flags=sorted((set(out[i].flags) - {"overlap"}) | {"clutter"}))
     out = [b for i, b in enumerate(out) if b is not None and i not in new]
     # (a pair measured again with its neighbours keeps what its elongation said)
     for p in unsplit:
@@ -365,12 +396,27 @@ def _one_sphere(m: Blob, kept: list[Blob]) -> bool:
         return False   # (a strong peak handed on unmeasured has no shape to judge)
     if not chord_like(m):
         return False
-    near = sorted(ref, key=lambda b: (b.x - m.x) ** 2 + (b.y - m.y) ** 2)[:4]
-    R = float(np.median([b.radius for b in near]))
-    ratio = m.mu_px * m.radius**3 / float(np.median([b.mu_px * b.radius**3 for b in near]))
-    same = 0.8 * R <= m.radius <= 1.25 * R and 0.6 <= ratio < 1.4 and m.anisotropy <= _ONE_SPHERE_ANISOTROPY
+    near = _nearest(m.x, m.y, ref)
+    same = _neighbours_size(m.radius, m.mu_px, near) and m.anisotropy <= _ONE_SPHERE_ANISOTROPY
     mu = m.mu_px / float(np.median([b.mu_px for b in near]))
     return same or (m.anisotropy <= ROUND_ANISOTROPY and 0.5 <= mu < 1.4)
+
+
+def _nearest(x: float, y: float, ref: list[Blob]) -> list[Blob]:
+    """The four shadows of ``ref`` nearest (x, y): an intensifier magnifies
+    its periphery, so a shadow's size is judged against its neighbours'."""
+    return sorted(ref, key=lambda b: (b.x - x) ** 2 + (b.y - y) ** 2)[:4]
+
+
+def _neighbours_size(R: float, mu: float, near: list[Blob], sized: bool = True) -> bool:
+    """Whether a sphere of radius ``R`` px and contrast ``mu`` (per px of
+    chord) has the total attenuation (0.6-1.4x) and, when ``sized``, the
+    size (0.8-1.25x) of the shadows ``near`` measured alone: one sphere's,
+    not two on one line of sight nor a fragment. (A joint model's radius is
+    not a window's moment radius: compare only the attenuation then.)"""
+    R0 = float(np.median([b.radius for b in near]))
+    ratio = mu * R**3 / float(np.median([b.mu_px * b.radius**3 for b in near]))
+    return (not sized or 0.8 * R0 <= R <= 1.25 * R0) and 0.6 <= ratio < 1.4
 
 
 def _one_on_structure(a, m: Blob, kept: list[Blob], opt: DetectOptions, noise: float, invalid, near,
