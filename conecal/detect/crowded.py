@@ -3,11 +3,13 @@
 :func:`detect_frame` measures every shadow alone (:mod:`.frame`), then
 groups the shadows whose centroid windows meet and measures each again on
 the frame with its neighbours' fitted models removed (:mod:`.overlap`),
-splits a blob that holds several shadows into them (:mod:`.split`), and
-measures candidate peaks a neighbour spoilt together with it. A shadow flagged clutter is
-measured again with the background across an edge beside it (a plate's
-step, a holder's wall) fitted and removed (:mod:`.edge`). Units: px,
-attenuation.
+splits a blob that holds several shadows into them (:mod:`.split`),
+measures candidate peaks a neighbour spoilt together with it, and a strong
+peak that no window could measure by the joint model alone. Lengths of a
+wire or a screw taken for spheres are dropped (:mod:`.rod`). A shadow
+flagged clutter is measured again with the background across an edge
+beside it (a plate's step, a holder's wall) fitted and removed
+(:mod:`.edge`). Units: px, attenuation.
 """
 
 from __future__ import annotations
@@ -169,7 +171,10 @@ def measure_crowded(a: np.ndarray, kept: list[Blob], merged: list[Blob], opt: De
     top of each other, replaced by their parts when a joint fit says so;
     ``around``: other blobs, kept out of the splits' backgrounds;
     ``disturbed``: the seeds where a shadow measured alone was flagged
-    clutter (they carry the flag into the joint fit)."""
+    clutter (they carry the flag into the joint fit). A seed touching no
+    other shadow is fitted by itself and kept only with one sphere's
+    attenuation (flagged clutter, not overlap); a split whose parts are a
+    rod's lengths (:func:`conecal.detect.rod.rod_like`) is dropped."""
     R1, mu1 = _typical(kept, opt)
     seeds = list(seeds)
     parts, gone, singles, unsplit = [], set(), [], []
@@ -306,13 +311,14 @@ def measure_crowded(a: np.ndarray, kept: list[Blob], merged: list[Blob], opt: De
                 break
             fit = refit(fit[1], [n for n in range(len(g)) if n not in bad])
             g = dropped(g, bad)
-        if fit is not None and len(g) == 1 and g[0] in alone:
-            # a seed with no neighbour claims one sphere: two shadows nearly on
-            # top of each other fitted as one read 3.6 px from either
-            # (no shadow measured alone to compare with: no claim)
+        if fit is not None and len(g) == 1 and g[0] in lone:
+            # a seed with no neighbour claims one sphere, so it must carry one
+            # sphere's attenuation: two shadows nearly on top of each other
+            # fitted as one read 3.6 px from either (and with no shadow
+            # measured alone to compare with, no claim)
             x, y, R, mu = fit[1][0]
             ref = [b for b in kept if not b.flags] or kept
-            if not ref or not _neighbours_size(R, mu, _nearest(x, y, ref), sized=False):
+            if not ref or not _like_neighbours(R, mu, _nearest(x, y, ref), sized=False):
                 fit = None
         if fit is None:
             for i in g:
@@ -347,8 +353,8 @@ def measure_crowded(a: np.ndarray, kept: list[Blob], merged: list[Blob], opt: De
     groups = groups_of(blobs, opt.blur_px)
     grouped = {i for g in groups for i in g}
     # (a seed touching nothing: measured as a group of one)
-    alone = set(trial - grouped)
-    groups += [[i] for i in sorted(alone)]
+    lone = set(trial - grouped)
+    groups += [[i] for i in sorted(lone)]
     for g in groups:
         s0 = np.array([[blobs[i].x, blobs[i].y, blobs[i].radius] for i in g])
         if _small(g, s0) or not _on_structure(a, g, s0):
@@ -365,7 +371,7 @@ def measure_crowded(a: np.ndarray, kept: list[Blob], merged: list[Blob], opt: De
             for k in range(len(near), -1, -1):
                 if measure([i] + near[:k], only=i) or k <= 1 or i in trial:
                     break
-    for i in alone:
+    for i in lone:
         if out[i] is not None:
             # (no neighbour: the model stood in for a background the window could
             # not have, which is the clutter flag's meaning, not an overlap)
@@ -397,7 +403,7 @@ def _one_sphere(m: Blob, kept: list[Blob]) -> bool:
     if not chord_like(m):
         return False
     near = _nearest(m.x, m.y, ref)
-    same = _neighbours_size(m.radius, m.mu_px, near) and m.anisotropy <= _ONE_SPHERE_ANISOTROPY
+    same = _like_neighbours(m.radius, m.mu_px, near) and m.anisotropy <= _ONE_SPHERE_ANISOTROPY
     mu = m.mu_px / float(np.median([b.mu_px for b in near]))
     return same or (m.anisotropy <= ROUND_ANISOTROPY and 0.5 <= mu < 1.4)
 
@@ -408,7 +414,7 @@ def _nearest(x: float, y: float, ref: list[Blob]) -> list[Blob]:
     return sorted(ref, key=lambda b: (b.x - x) ** 2 + (b.y - y) ** 2)[:4]
 
 
-def _neighbours_size(R: float, mu: float, near: list[Blob], sized: bool = True) -> bool:
+def _like_neighbours(R: float, mu: float, near: list[Blob], sized: bool = True) -> bool:
     """Whether a sphere of radius ``R`` px and contrast ``mu`` (per px of
     chord) has the total attenuation (0.6-1.4x) and, when ``sized``, the
     size (0.8-1.25x) of the shadows ``near`` measured alone: one sphere's,
