@@ -21,8 +21,9 @@ import numpy as np
 from .frame import ROUND_ANISOTROPY, Blob, DetectOptions, chord_like, detect_blobs, refine, window_reach
 from .background import fit_profile, structured
 from .edge import CONE_OFFSET_PX, beside_edge
-from .rod import on_rods, rod_like
+from .rod import on_rods, rod_like, run_on
 from .overlap import components, fit_group, group_box, groups_of, joint_sigma, render_box
+from .size import like_neighbours, nearest_shadows
 from .split import elongation_bound, hidden_pairs, is_pair, peaks_in, split, unsplit_pair
 
 # A joint model's centre that no centroid confirms (a seed, a split part, or a
@@ -95,7 +96,14 @@ def detect_frame(a: np.ndarray, opt: DetectOptions) -> list[Blob]:
     out = [elongation_bound(b, opt.blur_px, opt.max_anisotropy) if "overlap" in b.flags else b for b in out]
     # (a marker is a measured centre with a sigma: one without never leaves
     # here, where it made the whole scan's markers file invalid)
-    return [b for b in hidden_pairs(a, out, opt.blur_px) if np.isfinite((b.x, b.y, b.sigma)).all()]
+    out = [b for b in hidden_pairs(a, out, opt.blur_px) if np.isfinite((b.x, b.y, b.sigma)).all()]
+    # (one shadow, one marker: two paths that measured the same sphere gave
+    # an independent helix's bead twice, 0.05 px apart; the surer one stays)
+    one: list[Blob] = []
+    for b in sorted(out, key=lambda b: b.sigma):
+        if all(np.hypot(b.x - o.x, b.y - o.y) > 0.25 * min(b.radius, o.radius) for o in one):
+            one.append(b)
+    return [b for b in out if any(b is o for o in one)]
 
 
 def _typical(kept: list[Blob], opt: DetectOptions):
@@ -198,6 +206,15 @@ def measure_crowded(a: np.ndarray, kept: list[Blob], merged: list[Blob], opt: De
                 one = pair if one is m else one
             if one is not None:
                 singles.append(one)
+            elif pair is None and not is_deep and len(own := peaks_in(m, peaks)) <= 1 \
+                    and not run_on(a, np.array([[m.x, m.y, R1, 0.0]]), opt.blur_px, invalid, others=near).rod():
+                # one sphere's attenuation that no split, window or pair claimed
+                # (a lone bead whose noisy moments read elongated; not a wire's
+                # length): its peak is a seed, which the joint model measures and
+                # which must earn its place (once: two merged blobs may hold it)
+                p = own[0] if own else (m.x, m.y)
+                if all((p[0] - q[0]) ** 2 + (p[1] - q[1]) ** 2 >= (0.8 * R1) ** 2 for q in seeds):
+                    seeds.append(p)
             continue
         sph, on_edge = found
         if rod_like(a, sph, opt.blur_px, [(b.x, b.y, b.radius) for b in kept if b is not m], invalid):
@@ -318,7 +335,7 @@ def measure_crowded(a: np.ndarray, kept: list[Blob], merged: list[Blob], opt: De
             # measured alone to compare with, no claim)
             x, y, R, mu = fit[1][0]
             ref = [b for b in kept if not b.flags] or kept
-            if not ref or not _like_neighbours(R, mu, _nearest(x, y, ref), sized=False):
+            if not ref or not like_neighbours(R, mu, nearest_shadows(x, y, ref), sized=False):
                 fit = None
         if fit is None:
             for i in g:
@@ -402,27 +419,10 @@ def _one_sphere(m: Blob, kept: list[Blob]) -> bool:
         return False   # (a strong peak handed on unmeasured has no shape to judge)
     if not chord_like(m):
         return False
-    near = _nearest(m.x, m.y, ref)
-    same = _like_neighbours(m.radius, m.mu_px, near) and m.anisotropy <= _ONE_SPHERE_ANISOTROPY
+    near = nearest_shadows(m.x, m.y, ref)
+    same = like_neighbours(m.radius, m.mu_px, near) and m.anisotropy <= _ONE_SPHERE_ANISOTROPY
     mu = m.mu_px / float(np.median([b.mu_px for b in near]))
     return same or (m.anisotropy <= ROUND_ANISOTROPY and 0.5 <= mu < 1.4)
-
-
-def _nearest(x: float, y: float, ref: list[Blob]) -> list[Blob]:
-    """The four shadows of ``ref`` nearest (x, y): an intensifier magnifies
-    its periphery, so a shadow's size is judged against its neighbours'."""
-    return sorted(ref, key=lambda b: (b.x - x) ** 2 + (b.y - y) ** 2)[:4]
-
-
-def _like_neighbours(R: float, mu: float, near: list[Blob], sized: bool = True) -> bool:
-    """Whether a sphere of radius ``R`` px and contrast ``mu`` (per px of
-    chord) has the total attenuation (0.6-1.4x) and, when ``sized``, the
-    size (0.8-1.25x) of the shadows ``near`` measured alone: one sphere's,
-    not two on one line of sight nor a fragment. (A joint model's radius is
-    not a window's moment radius: compare only the attenuation then.)"""
-    R0 = float(np.median([b.radius for b in near]))
-    ratio = mu * R**3 / float(np.median([b.mu_px * b.radius**3 for b in near]))
-    return (not sized or 0.8 * R0 <= R <= 1.25 * R0) and 0.6 <= ratio < 1.4
 
 
 def _one_on_structure(a, m: Blob, kept: list[Blob], opt: DetectOptions, noise: float, invalid, near,

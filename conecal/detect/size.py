@@ -6,6 +6,8 @@ grid's source distances are rarely known to 25 %) changed which peaks were
 candidates, the background rings and the crowd tests, so the same images gave
 other markers. Here the shadows of one frame measured with the typed size say
 how far off it is, and the sizes looked for follow what was measured.
+Within a frame, a shadow claimed as one sphere is judged against its
+nearest neighbours measured alone (:func:`like_neighbours`).
 """
 
 from __future__ import annotations
@@ -67,3 +69,20 @@ def measured_size(blobs: list, opt: DetectOptions) -> DetectOptions:
         return replace(opt, size_scale=s)
     return replace(opt, size_scale=s, diameter_px=tuple(float(d * s) for d in opt.diameter_px),
                    shadow_px=tuple(float(d * s) for d in opt.shadow_px))
+
+
+def nearest_shadows(x: float, y: float, ref: list) -> list:
+    """The four shadows of ``ref`` nearest (x, y): an intensifier magnifies
+    its periphery, so a shadow's size is judged against its neighbours'."""
+    return sorted(ref, key=lambda b: (b.x - x) ** 2 + (b.y - y) ** 2)[:4]
+
+
+def like_neighbours(R: float, mu: float, near: list, sized: bool = True) -> bool:
+    """Whether a sphere of radius ``R`` px and contrast ``mu`` (per px of
+    chord) has the total attenuation (0.6-1.4x) and, when ``sized``, the
+    size (0.8-1.25x) of the shadows ``near`` measured alone: one sphere's,
+    not two on one line of sight nor a fragment. (A joint model's radius is
+    not a window's moment radius: compare only the attenuation then.)"""
+    R0 = float(np.median([b.radius for b in near]))
+    ratio = mu * R**3 / float(np.median([b.mu_px * b.radius**3 for b in near]))
+    return (not sized or 0.8 * R0 <= R <= 1.25 * R0) and 0.6 <= ratio < 1.4
