@@ -206,12 +206,14 @@ def measure_crowded(a: np.ndarray, kept: list[Blob], merged: list[Blob], opt: De
                 one = pair if one is m else one
             if one is not None:
                 singles.append(one)
-            elif pair is None and not is_deep and len(own := peaks_in(m, peaks)) <= 1 \
+            elif pair is None and not is_deep and "clutter" not in m.flags and len(own := peaks_in(m, peaks)) <= 1 \
                     and not run_on(a, np.array([[m.x, m.y, R1, 0.0]]), opt.blur_px, invalid, others=near).rod():
                 # one sphere's attenuation that no split, window or pair claimed
                 # (a lone bead whose noisy moments read elongated; not a wire's
-                # length): its peak is a seed, which the joint model measures and
-                # which must earn its place (once: two merged blobs may hold it)
+                # length, and not across an edge, which the edge's profile
+                # measures better): its peak is a seed, which the joint model
+                # measures and which must earn its place (once: two merged
+                # blobs may hold it)
                 p = own[0] if own else (m.x, m.y)
                 if all((p[0] - q[0]) ** 2 + (p[1] - q[1]) ** 2 >= (0.8 * R1) ** 2 for q in seeds):
                     seeds.append(p)
