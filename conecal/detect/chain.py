@@ -41,15 +41,22 @@ def rough_blob(a: np.ndarray, cx: float, cy: float, r: float, blur: float, noise
     w = np.where(lab == lab[iy - q0, ix - c0], p, 0.0)
     V = float(w.sum())
     x, y, cov = weighted_moments(w, xx, yy)
-    tr, det = cov[0, 0] + cov[1, 1], cov[0, 0] * cov[1, 1] - cov[0, 1] ** 2
-    disc = np.sqrt(max(tr * tr / 4 - det, 0.0))
-    l1, l2 = tr / 2 + disc, tr / 2 - disc
-    m2 = 1.5 * tr - 2 * blur**2 - 2 / 12
-    if m2 <= 0 or l2 <= 0:
+    m2 = 1.5 * (cov[0, 0] + cov[1, 1]) - 2 * blur**2 - 2 / 12
+    aniso = anisotropy(cov[0, 0], cov[1, 1], cov[0, 1])
+    if m2 <= 0 or not np.isfinite(aniso):
         return None
     R = float(np.sqrt(2.5 * m2))
     return dict(x=x, y=y, radius=R, sigma=float("inf"), mu_px=1.5 * 1.5 * V / (np.pi * R * R) / (2 * R), peak=top,
-                anisotropy=float(np.sqrt(l1 / l2)), flags=["clutter"], snr=top / max(noise, 1e-12))
+                anisotropy=aniso, flags=["clutter"], snr=top / max(noise, 1e-12))
+
+
+def anisotropy(Mxx: float, Myy: float, Mxy: float) -> float:
+    """The square root of the ratio of the principal second moments of a
+    2x2 moment matrix (px^2); inf when the smaller is not positive."""
+    tr, det = Mxx + Myy, Mxx * Myy - Mxy**2
+    disc = np.sqrt(max(tr * tr / 4 - det, 0.0))
+    l1, l2 = tr / 2 + disc, tr / 2 - disc
+    return float(np.sqrt(l1 / l2)) if l2 > 0 else np.inf
 
 
 def weighted_moments(w: np.ndarray, xx: np.ndarray, yy: np.ndarray):

@@ -34,7 +34,7 @@ import cv2
 import numpy as np
 
 from . import kernels
-from .chain import chain_like, rough_blob
+from .chain import anisotropy, chain_like, rough_blob
 from .noise import noise_pixel
 from .peaks import candidates, invalid_mask, small_frame
 
@@ -243,7 +243,7 @@ def refine(a: np.ndarray, x0: float, y0: float, r0: float, opt: DetectOptions, o
             n_rim = st[10] - core[10] if core is not None else 0
             seen = n_rim > 0 and rim < -2 * sig_bg * np.sqrt(opt.noise_kappa * n_rim)
             if seen and mc > 0 and np.sqrt(2.5 * mc) >= _MOAT_SHARE * r_half and \
-                    _ratio(core[3], core[4], core[5]) <= opt.max_anisotropy:
+                    anisotropy(core[3], core[4], core[5]) <= opt.max_anisotropy:
                 r_m2 = r_half
         if r_m2 <= 0:
             return None
@@ -257,7 +257,7 @@ def refine(a: np.ndarray, x0: float, y0: float, r0: float, opt: DetectOptions, o
     if st is None:
         return None
     V, _, _, Mxx, Myy, Mxy, Sxx_e, Syy_e, sum_e2, abs_ex, n_win = st
-    aniso = _ratio(Mxx, Myy, Mxy)
+    aniso = anisotropy(Mxx, Myy, Mxy)
     # centroid noise: pixel noise grows with attenuation, var ~ exp(a) / N0
     sigma2 = sig_bg**2 * (Sxx_e + Syy_e) / 2 / V**2
     # the fitted background's slope uncertainty moves the centroid too
@@ -319,14 +319,6 @@ def refine(a: np.ndarray, x0: float, y0: float, r0: float, opt: DetectOptions, o
         flags.append("clutter")
     return Blob(float(x), float(y), r, float(np.sqrt(sigma2)), float(mu_px), peak, aniso, flags,
                 float(peak / sig_bg), misfit)
-
-
-def _ratio(Mxx: float, Myy: float, Mxy: float) -> float:
-    """Anisotropy: the square root of the ratio of the principal second moments."""
-    tr, det = Mxx + Myy, Mxx * Myy - Mxy**2
-    disc = np.sqrt(max(tr * tr / 4 - det, 0.0))
-    l1, l2 = tr / 2 + disc, tr / 2 - disc
-    return float(np.sqrt(l1 / l2)) if l2 > 0 else np.inf
 
 
 def window_radius(r, blur: float):
