@@ -76,6 +76,7 @@ def run_case(gen, name: str, seed: int, root: Path) -> dict:
     found = {"overlap": 0, "separate": 0}
     errs = {"overlap": [], "separate": []}
     pulls: dict = {}
+    by_flag: dict = {}
     false = 0
     true_ids = {}
     either = {}   # (frame, marker) -> ids of every sphere whose centre lies inside the marker's shadow
@@ -100,6 +101,7 @@ def run_case(gen, name: str, seed: int, root: Path) -> dict:
                 errs[cls].append(e)
                 key = ",".join(sorted(m["flags"])) or "unflagged"
                 pulls.setdefault(key, []).extend([e[0] / m["sigma"], e[1] / m["sigma"]])
+                by_flag.setdefault(key, []).append(e)
     scan = load_scan(out / "scan")
     t1 = time.perf_counter()
     try:
@@ -141,6 +143,7 @@ def run_case(gen, name: str, seed: int, root: Path) -> dict:
             "rms_px": {c: float(np.sqrt(np.mean(np.square(errs[c])))) if errs[c] else None for c in errs},
             "pull_std": {k: [round(float(np.std(v)), 2), round(float(mad_sigma(v)), 2), len(v) // 2]
                          for k, v in sorted(pulls.items())},
+            "rms_px_by_flag": {k: round(float(np.sqrt(np.mean(np.square(v)))), 3) for k, v in sorted(by_flag.items())},
             "false": false, "frames": len(doc["frames"]), "ok": n_ok, "ambiguous": n_amb, "wrong_ok": wrong,
             "turned_ok": turned,
             "rms_fit_px": doc["summary"]["rms_px"], "family": doc["distortion"]["family"] if doc["distortion"] else
