@@ -15,8 +15,10 @@ from .background import fit_profile, structured
 from .frame import Blob, DetectOptions, refine
 from .overlap import disc_misfit, fit_group, joint_sigma
 
-# the cone-beam shadow's centroid and the model circle's centre differ by
-# ~0.02 px; a larger disagreement is the neighbours' models' error
+# how far a centroid and a model's centre may differ before the gap counts as
+# the neighbours' models' (or the edge's) error. Not the cone-beam shadow's own
+# centroid-to-circle gap, which is 0.003 px at most (centre.MODEL_CENTROID_PX);
+# kept at the value the overlap and edge classes' pulls were measured with
 CONE_OFFSET_PX = 0.03
 # a sphere model on a patch whose edge was removed must fit its disc to this chi^2
 # per pixel (in the pixel noise's variance), or as well as the background around it
