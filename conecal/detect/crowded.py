@@ -23,7 +23,7 @@ from .background import fit_profile, structured
 from .centre import model_centre
 from .edge import CONE_OFFSET_PX, beside_edge
 from .rod import on_rods, rod_like, run_on
-from .overlap import components, fit_group, group_box, groups_of, joint_sigma, render_box
+from .overlap import components, fit_group, group_box, groups_of, joint_sigma, neighbours, render_box
 from .size import like_neighbours, nearest_shadows
 from .split import elongation_bound, hidden_pairs, is_pair, peaks_in, split, unsplit_pair
 
@@ -88,7 +88,7 @@ def detect_frame(a: np.ndarray, opt: DetectOptions) -> list[Blob]:
     # a misshapen clutter blob is kept only if removing an edge's background beside
     # it leaves a clean sphere shadow, away from every marker already found
     for b in spoilt:
-        b2 = beside_edge(a, b, opt, noise, invalid, _neighbours(b, out + spoilt, peaks, opt))
+        b2 = beside_edge(a, b, opt, noise, invalid, neighbours(b, out + spoilt, peaks, opt))
         if (b2 is not b and b2.anisotropy <= opt.max_anisotropy
                 and all(np.hypot(b2.x - o.x, b2.y - o.y) > 0.8 * max(o.radius, b2.radius) for o in out)):
             out.append(b2)
@@ -106,7 +106,7 @@ def detect_frame(a: np.ndarray, opt: DetectOptions) -> list[Blob]:
             one.append(b)
     out = [b for b in out if any(b is o for o in one)]
     # a lone shadow's centre from its fitted model: 2-3x surer than its centroid (.centre)
-    return [model_centre(a, b, opt, noise, invalid, _neighbours(b, out, peaks, opt)) for b in out]
+    return [model_centre(a, b, opt, noise, invalid, neighbours(b, out, peaks, opt)) for b in out]
 
 
 def _typical(kept: list[Blob], opt: DetectOptions):
@@ -190,7 +190,7 @@ def measure_crowded(a: np.ndarray, kept: list[Blob], merged: list[Blob], opt: De
     seeds = list(seeds)
     parts, gone, singles, unsplit = [], set(), [], []
     for m in list(merged) + list(deep):
-        near = _neighbours(m, [*kept, *merged, *deep, *around], peaks, opt, 1.5 * m.radius + 2, 1.2 * R1)
+        near = neighbours(m, [*kept, *merged, *deep, *around], peaks, opt, 1.5 * m.radius + 2, 1.2 * R1)
         found = split(a, m, R1, mu1, opt.blur_px, noise, opt.noise_kappa, near, invalid, peaks)
         if found is None:
             is_deep = any(m is d for d in deep)
@@ -404,7 +404,7 @@ def measure_crowded(a: np.ndarray, kept: list[Blob], merged: list[Blob], opt: De
         near = [n for n, b in enumerate(out) if np.hypot(b.x - p.x, b.y - p.y) < 0.5 * p.radius]
         for n in near:
             out[n] = replace(out[n], sigma=max(out[n].sigma, p.sigma), flags=sorted(set(out[n].flags) | {"overlap"}))
-    return [beside_edge(a, b, opt, noise, invalid, _neighbours(b, out, peaks, opt)) if "overlap" not in b.flags
+    return [beside_edge(a, b, opt, noise, invalid, neighbours(b, out, peaks, opt)) if "overlap" not in b.flags
             else b for b in out]
 
 
@@ -482,22 +482,3 @@ def _member(work, b0: Blob, sph: np.ndarray, sig: np.ndarray, opt: DetectOptions
         b.sigma = float(np.sqrt(b.sigma**2 + excess))
     b.flags = sorted(set(b.flags) | {"overlap"})
     return b, True
-
-
-def _neighbours(b: Blob, blobs: list[Blob], peaks, opt: DetectOptions, inside: float | None = None,
-                r_peak: float | None = None) -> list:
-    """(x, y, r) of the shadows and unmeasured candidate peaks near ``b``
-    (within reach of its background patch), ``b`` itself excluded; peaks
-    closer than ``inside`` px (default 0.8 of its radius; shadows: half of
-    it) are its own, a
-    peak's shadow is taken of radius ``r_peak`` px (default the largest
-    nominal) and no shadow as larger than 1.5 times that (a misshapen
-    blob's moment radius is no shadow's size)."""
-    reach = 5 * b.radius + 6 * opt.blur_px + 8
-    r_peak = opt.diameter_px[1] / 2 if r_peak is None else r_peak
-    near = [(o.x, o.y, min(o.radius, 1.5 * r_peak)) for o in blobs
-            if o is not b and (0.5 * b.radius if inside is None else inside) < np.hypot(o.x - b.x, o.y - b.y) < reach]
-    own = 0.8 * b.radius if inside is None else inside
-    return near + [(px, py, r_peak) for px, py in peaks
-                   if own < np.hypot(px - b.x, py - b.y) < reach
-                   and all(np.hypot(px - o[0], py - o[1]) > 0.8 * o[2] for o in near)]

@@ -222,3 +222,22 @@ def groups_of(blobs, blur: float) -> list[list[int]]:
     for i, c in enumerate(components(n, pairs)):
         out.setdefault(int(c), []).append(i)
     return [g for g in out.values() if len(g) > 1]
+
+
+def neighbours(b, blobs: list, peaks, opt, inside: float | None = None,
+               r_peak: float | None = None) -> list:
+    """(x, y, r) px of the shadows ``blobs`` (detect's Blob) and unmeasured
+    candidate ``peaks`` (x, y) within reach of ``b``'s background patch, to
+    be left out of its fit; ``b`` itself excluded. Peaks closer than
+    ``inside`` px (default 0.8 of its radius; shadows: half of it) are its
+    own; a peak's shadow is taken of radius ``r_peak`` px (default the
+    largest nominal, ``opt.diameter_px``) and no shadow as larger than 1.5
+    times that (a misshapen blob's moment radius is no shadow's size)."""
+    reach = 5 * b.radius + 6 * opt.blur_px + 8
+    r_peak = opt.diameter_px[1] / 2 if r_peak is None else r_peak
+    near = [(o.x, o.y, min(o.radius, 1.5 * r_peak)) for o in blobs
+            if o is not b and (0.5 * b.radius if inside is None else inside) < np.hypot(o.x - b.x, o.y - b.y) < reach]
+    own = 0.8 * b.radius if inside is None else inside
+    return near + [(px, py, r_peak) for px, py in peaks
+                   if own < np.hypot(px - b.x, py - b.y) < reach
+                   and all(np.hypot(px - o[0], py - o[1]) > 0.8 * o[2] for o in near)]
