@@ -73,6 +73,29 @@ def structured(a: np.ndarray, x: float, y: float, R: float, blur: float, noise: 
     return float(np.std(roi[m] - A @ c)) > 1.3 * noise
 
 
+def smooth_under(a: np.ndarray, box, discs, blur: float, scale: float, invalid=None) -> np.ndarray | None:
+    """The background over the frame's patch ``box`` (c0, q0, c1, q1) where
+    the shadows ``discs`` ((x, y, r) px) hide it, from the pixels around them:
+    a Gaussian average (σ ``scale`` px) of the pixels outside every shadow's
+    reach, normalised by the weight it found (normalised convolution). No
+    surface is assumed, so it follows a tube's curved wall or a plate's
+    ramp that a quadratic does not; it smooths a step. Attenuation, on the
+    patch's pixels; None where the shadows leave too little around them
+    (under 5 % of the kernel's weight at some pixel)."""
+    rows, cols = a.shape
+    c0, q0, c1, q1 = box
+    pad = int(np.ceil(3 * scale))
+    big = (max(c0 - pad, 0), max(q0 - pad, 0), min(c1 + pad, cols), min(q1 + pad, rows))
+    w = mask_weights(big, discs, blur, invalid)
+    roi = a[big[1]:big[3], big[0]:big[2]].astype(np.float64)
+    num = cv2.GaussianBlur(w * roi, (0, 0), scale, borderType=cv2.BORDER_CONSTANT)
+    den = cv2.GaussianBlur(w, (0, 0), scale, borderType=cv2.BORDER_CONSTANT)
+    inner = (slice(q0 - big[1], q1 - big[1]), slice(c0 - big[0], c1 - big[0]))
+    if den[inner].size == 0 or den[inner].min() < 0.05:
+        return None
+    return num[inner] / den[inner]
+
+
 def fit_profile(a: np.ndarray, spheres: np.ndarray, blur: float, noise: float, invalid=None, others=()):
     """The background across an edge beside the sphere shadows ``spheres``
     (k, 4: x, y, R px, mu per px of chord; one, or a touching group):

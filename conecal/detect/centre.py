@@ -1,4 +1,4 @@
-"""A lone shadow's centre from a fitted sphere model, not its window's centroid.
+"""A shadow's centre from its fitted sphere model, not its window's centroid.
 
 The attenuation centroid over a window weighs each pixel's noise by its
 distance from the centre, out to the window's rim: on an independent helix
@@ -17,7 +17,10 @@ whose σ holds more than noise, a centre the centroid disagrees with beyond
 what their noise allows (something in the
 patch the model does not hold: a holder's wall beside the shadow moved the
 model 0.2-0.4 px where the centroid was 0.02-0.1 px off), or a fit no surer
-than the centroid. Units: px, attenuation.
+than the centroid. A flagged shadow that stands apart from the others is
+measured by its model too, on the background an edge's profile or a
+quadratic gives, with σ for how much the centre depends on that choice
+(:func:`_apart_centre`). Units: px, attenuation.
 """
 
 from __future__ import annotations
@@ -26,8 +29,9 @@ from dataclasses import replace
 
 import numpy as np
 
+from .background import fit_profile, smooth_under, structured
 from .frame import Blob, DetectOptions
-from .overlap import fit_group, joint_sigma
+from .overlap import disc_misfit, fit_group, group_box, joint_sigma
 
 # the fitted circle's centre and the cone-beam shadow's attenuation centroid:
 # 0.0000-0.0033 px apart over six geometries (see the module's docstring)
@@ -43,28 +47,42 @@ _AGREE = 4.0
 # noise (a step beside the shadow: 3.0 px against the model's 0.04, where the
 # model's centre was 0.17 px off and the centroid's 0.01), and it stays
 _NOISE_LIKE = 4.0
+# a flagged marker's centre and its model's may differ by this many times
+# their σ (squared distance over the sum of variances)
+_APART_AGREE = 9.0
+# a one-sphere model's misfit on its disc over that around it, beyond which
+# the shadow may hold two
+_DISC_MISFIT = 2.0
+# the smoothed-in background's Gaussian, in shadow radii
+_SMOOTH_RADII = 2.0
 
 
-def model_centre(a: np.ndarray, b: Blob, opt: DetectOptions, noise: float, invalid=None, others=()) -> Blob:
+def model_centre(a: np.ndarray, b: Blob, opt: DetectOptions, noise: float, invalid=None, others=(),
+                 typical=(0.0, None)) -> Blob:
     """``b`` (measured alone by its centroid) with its centre and σ from a
     sphere model fitted on frame ``a`` (attenuation) about it, or ``b``
     unchanged where the model is not the better measurement. ``others``:
     (x, y, r) px of the shadows near it, left out of the fit; ``noise``: the
-    frame's pixel noise.
+    frame's pixel noise; ``typical``: the frame's sphere radius (px) and
+    contrast (None when unknown).
 
-    Only an unflagged marker: a flagged one's σ holds more than its noise (a
-    neighbour's model, a hidden second sphere, a disturbed background), which
-    a fit's σ would drop (tried on the helix's overlapping beads: pull std
-    1.00 -> 3.87 with 12 of 153 beyond 5)."""
-    if b.flags or not np.isfinite(b.sigma) or b.radius <= 1.0:
+    A flagged marker's σ holds more than its noise (a neighbour's model, a
+    disturbed background), which a fit's σ alone would drop (tried on the
+    helix's overlapping beads: pull std 1.00 -> 3.87 with 12 of 153 beyond
+    5): only one whose shadow stands apart is measured so, with σ for the
+    background hidden under it (:func:`_apart_centre`). A marker whose σ
+    covers a second sphere nearly on top is not passed here."""
+    if not np.isfinite(b.sigma) or b.radius <= 1.0 or "truncated" in b.flags:
         return b
+    if b.flags:
+        return _apart_centre(a, b, opt, noise, invalid, others, typical)
     start = np.array([[b.x, b.y, b.radius, max(b.mu_px, 1e-6)]])
     noise = max(noise, 1e-9)
     fit = fit_group(a, start, opt.blur_px, noise, mask_out=others, invalid=invalid, quadratic=True)
     if fit is None:
         return b
     sph = fit[1][0]
-    if not (0.7 * b.radius <= sph[2] <= 1.4 * b.radius and 0.5 * b.mu_px <= sph[3] <= 2.0 * b.mu_px):
+    if not _like(sph, b):
         return b
     s_fit = joint_sigma(fit[2][0], opt.noise_kappa)
     gap2 = (sph[0] - b.x) ** 2 + (sph[1] - b.y) ** 2
@@ -75,3 +93,81 @@ def model_centre(a: np.ndarray, b: Blob, opt: DetectOptions, noise: float, inval
     excess = max(gap2 / 2 - b.sigma**2 - s_fit**2, 0.0)
     return replace(b, x=float(sph[0]), y=float(sph[1]),
                    sigma=float(np.sqrt(s_fit**2 + MODEL_CENTROID_PX**2 + excess)))
+
+
+def _apart_centre(a: np.ndarray, b: Blob, opt: DetectOptions, noise: float, invalid, others, typical) -> Blob:
+    """A flagged marker (``overlap``: measured with its neighbours' models
+    removed; ``clutter``: a disturbed background) whose shadow stands apart
+    from every other (no disc overlaps its own), measured by its own sphere
+    model with the others left out, where that is surer than what it has.
+
+    The background under the shadow is the unknown: where the patch holds
+    more than a quadratic follows (:func:`.background.structured`: a tube's
+    wall, a plate's edge), it is the edge's profile along its level lines
+    (:func:`.background.fit_profile`), and the sphere is fitted on the frame
+    less it; elsewhere a quadratic fitted with the sphere. σ says how much
+    the centre depends on that choice: half the squared gap to the centre
+    fitted on a second background (the quadratic beside a profile; beside a
+    quadratic, the frame less a background smoothed in from around the
+    shadows, :func:`.background.smooth_under`) is added to the fit's
+    variance per axis. ``typical``: the frame's sphere radius (px) and
+    contrast (None when unknown), for a marker whose window misread them."""
+    if any(np.hypot(x - b.x, y - b.y) < r + b.radius for x, y, r in others):
+        return b
+    start = np.array([[b.x, b.y, b.radius, max(b.mu_px, 1e-6)]])
+    noise = max(noise, 1e-9)
+    quad = fit_group(a, start, opt.blur_px, noise, mask_out=others, invalid=invalid, quadratic=True)
+    if quad is None:
+        return b
+    # (a second sphere in the shadow, which its elongation may have shown:
+    # one sphere leaves on its disc 3.7x the misfit around it, where lone
+    # beads on the helix's tube read 0.5-1.7x)
+    on, around = disc_misfit(a, quad, opt.blur_px, noise, others, invalid)
+    if on > _DISC_MISFIT * around:
+        return b
+    quad = quad[1][0], joint_sigma(quad[2][0], opt.noise_kappa)
+    if structured(a, b.x, b.y, b.radius, opt.blur_px, noise, invalid, others):
+        prof = fit_profile(a, start, opt.blur_px, noise, invalid, others)
+        if prof is None:
+            return b
+        best, second = _fit_less(a, prof[0], prof[1], start, opt, noise, invalid, others), quad
+    else:
+        discs = [*others, (b.x, b.y, b.radius)]
+        box = group_box(a.shape, start, opt.blur_px)
+        bg = smooth_under(a, box, discs, opt.blur_px, _SMOOTH_RADII * b.radius, invalid)
+        best, second = quad, None if bg is None else _fit_less(a, box, bg, start, opt, noise, invalid, others)
+    if best is None or second is None or not (_plausible(best[0], b, typical) and _plausible(second[0], b, typical)):
+        return b
+    (x, y), (x2, y2) = best[0][:2], second[0][:2]
+    s2 = best[1] ** 2 + MODEL_CENTROID_PX**2 + ((x - x2) ** 2 + (y - y2) ** 2) / 2
+    gap2 = (x - b.x) ** 2 + (y - b.y) ** 2
+    if not (np.isfinite(s2) and s2 < b.sigma**2) or gap2 > _APART_AGREE * (b.sigma**2 + s2):
+        return b
+    excess = max(gap2 / 2 - b.sigma**2 - s2, 0.0)
+    return replace(b, x=float(x), y=float(y), sigma=float(np.sqrt(s2 + excess)))
+
+
+def _fit_less(a: np.ndarray, box, bg: np.ndarray, start: np.ndarray, opt: DetectOptions, noise: float, invalid,
+              others):
+    """One sphere fitted, with a plane, on the frame's patch ``box`` less
+    the background image ``bg`` over it: (x, y, R, mu frame px, centre σ
+    px) or None."""
+    c0, q0, c1, q1 = box
+    off = np.array([c0, q0, 0.0, 0.0])
+    fit = fit_group((a[q0:q1, c0:c1] - bg).astype(np.float32), start - off, opt.blur_px, noise,
+                    mask_out=[(x - c0, y - q0, r) for x, y, r in others],
+                    invalid=None if invalid is None else invalid[q0:q1, c0:c1], box=(0, 0, c1 - c0, q1 - q0))
+    return None if fit is None else (fit[1][0] + off, joint_sigma(fit[2][0], opt.noise_kappa))
+
+
+def _plausible(sph: np.ndarray, b: Blob, typical) -> bool:
+    """A fitted sphere of ``b``'s size and contrast, or of the frame's
+    (``typical`` radius and contrast, bounds as a crowd's member must keep:
+    a disturbed window misreads both)."""
+    R1, mu1 = typical
+    return _like(sph, b) or (mu1 is not None and 0.6 * R1 < sph[2] < 1.6 * R1 and 0.5 * mu1 < sph[3] < 2.0 * mu1)
+
+
+def _like(sph: np.ndarray, b: Blob) -> bool:
+    """Whether a fitted sphere (x, y, R, mu) is of ``b``'s size and contrast."""
+    return bool(0.7 * b.radius <= sph[2] <= 1.4 * b.radius and 0.5 * b.mu_px <= sph[3] <= 2.0 * b.mu_px)
