@@ -53,12 +53,15 @@ _APART_AGREE = 9.0
 # a one-sphere model's misfit on its disc over that around it, beyond which
 # the shadow may hold two
 _DISC_MISFIT = 2.0
+# a one-sphere model's contrast over the frame's, beyond which a marker said
+# to be two shadows nearly on top is left so
+_ONE_CONTRAST = 1.3
 # the smoothed-in background's Gaussian, in shadow radii
 _SMOOTH_RADII = 2.0
 
 
 def model_centre(a: np.ndarray, b: Blob, opt: DetectOptions, noise: float, invalid=None, others=(),
-                 typical=(0.0, None)) -> Blob:
+                 typical=(0.0, None), two: bool = False) -> Blob:
     """``b`` (measured alone by its centroid) with its centre and σ from a
     sphere model fitted on frame ``a`` (attenuation) about it, or ``b``
     unchanged where the model is not the better measurement. ``others``:
@@ -70,12 +73,13 @@ def model_centre(a: np.ndarray, b: Blob, opt: DetectOptions, noise: float, inval
     disturbed background), which a fit's σ alone would drop (tried on the
     helix's overlapping beads: pull std 1.00 -> 3.87 with 12 of 153 beyond
     5): only one whose shadow stands apart is measured so, with σ for the
-    background hidden under it (:func:`_apart_centre`). A marker whose σ
-    covers a second sphere nearly on top is not passed here."""
+    background hidden under it (:func:`_apart_centre`). ``two``: ``b``'s σ
+    covers a second sphere nearly on top (an unsplit or hidden pair), which
+    only a model holding one sphere's contrast narrows."""
     if not np.isfinite(b.sigma) or b.radius <= 1.0 or "truncated" in b.flags:
         return b
     if b.flags:
-        return _apart_centre(a, b, opt, noise, invalid, others, typical)
+        return _apart_centre(a, b, opt, noise, invalid, others, typical, two)
     start = np.array([[b.x, b.y, b.radius, max(b.mu_px, 1e-6)]])
     noise = max(noise, 1e-9)
     fit = fit_group(a, start, opt.blur_px, noise, mask_out=others, invalid=invalid, quadratic=True)
@@ -95,7 +99,8 @@ def model_centre(a: np.ndarray, b: Blob, opt: DetectOptions, noise: float, inval
                    sigma=float(np.sqrt(s_fit**2 + MODEL_CENTROID_PX**2 + excess)))
 
 
-def _apart_centre(a: np.ndarray, b: Blob, opt: DetectOptions, noise: float, invalid, others, typical) -> Blob:
+def _apart_centre(a: np.ndarray, b: Blob, opt: DetectOptions, noise: float, invalid, others, typical,
+                  two: bool = False) -> Blob:
     """A flagged marker (``overlap``: measured with its neighbours' models
     removed; ``clutter``: a disturbed background) whose shadow stands apart
     from every other (no disc overlaps its own), measured by its own sphere
@@ -111,7 +116,9 @@ def _apart_centre(a: np.ndarray, b: Blob, opt: DetectOptions, noise: float, inva
     quadratic, the frame less a background smoothed in from around the
     shadows, :func:`.background.smooth_under`) is added to the fit's
     variance per axis. ``typical``: the frame's sphere radius (px) and
-    contrast (None when unknown), for a marker whose window misread them."""
+    contrast (None when unknown), for a marker whose window misread them.
+    ``two``: a marker said to be two shadows nearly on top, kept unless the
+    model holds one sphere's contrast per px of chord (two read more)."""
     if any(np.hypot(x - b.x, y - b.y) < r + b.radius for x, y, r in others):
         return b
     start = np.array([[b.x, b.y, b.radius, max(b.mu_px, 1e-6)]])
@@ -124,6 +131,11 @@ def _apart_centre(a: np.ndarray, b: Blob, opt: DetectOptions, noise: float, inva
     # beads on the helix's tube read 0.5-1.7x)
     on, around = disc_misfit(a, quad, opt.blur_px, noise, others, invalid)
     if on > _DISC_MISFIT * around:
+        return b
+    # (a pair nearly on top doubles the chord: fitted as one sphere it read
+    # 1.5-3.1x the frame's contrast on the helix, where its larger beads, which
+    # the pair tests took for pairs, read 0.8-1.0x)
+    if two and (typical[1] is None or quad[1][0][3] > _ONE_CONTRAST * typical[1]):
         return b
     quad = quad[1][0], joint_sigma(quad[2][0], opt.noise_kappa)
     if structured(a, b.x, b.y, b.radius, opt.blur_px, noise, invalid, others):

@@ -96,8 +96,8 @@ def detect_frame(a: np.ndarray, opt: DetectOptions) -> list[Blob]:
     out = [b for b, rod in zip(out, on_rods(a, out, opt.blur_px, invalid)) if not rod]
     out = [elongation_bound(b, opt.blur_px, opt.max_anisotropy) if "overlap" in b.flags else b for b in out]
     # (the markers whose σ covers a second sphere nearly on top, which no split
-    # separated or only the density shows: no one-sphere model may narrow it, as
-    # .centre would; overlapping helix beads took σ 0.03 px 1.5 px off)
+    # separated or only the density shows: a one-sphere model narrows it only
+    # where it holds one sphere's contrast, .centre)
     held = hidden_pairs(a, out, opt.blur_px)
     two += [n for n, b in zip(held, out) if n is not b]
     # (a marker is a measured centre with a sigma: one without never leaves
@@ -111,8 +111,8 @@ def detect_frame(a: np.ndarray, opt: DetectOptions) -> list[Blob]:
             one.append(b)
     out = [b for b in out if any(b is o for o in one)]
     # a shadow that stands apart: its centre from its fitted model, 2-3x surer than its centroid (.centre)
-    return [b if any(b is t for t in two) else
-            model_centre(a, b, opt, noise, invalid, neighbours(b, out, peaks, opt), (R1, mu1)) for b in out]
+    return [model_centre(a, b, opt, noise, invalid, neighbours(b, out, peaks, opt), (R1, mu1),
+                         two=any(b is t for t in two)) for b in out]
 
 
 def _typical(kept: list[Blob], opt: DetectOptions):
