@@ -123,21 +123,22 @@ def _apart_centre(a: np.ndarray, b: Blob, opt: DetectOptions, noise: float, inva
         return b
     start = np.array([[b.x, b.y, b.radius, max(b.mu_px, 1e-6)]])
     noise = max(noise, 1e-9)
-    quad = fit_group(a, start, opt.blur_px, noise, mask_out=others, invalid=invalid, quadratic=True)
-    if quad is None:
+    fit = fit_group(a, start, opt.blur_px, noise, mask_out=others, invalid=invalid, quadratic=True)
+    if fit is None:
         return b
     # (a second sphere in the shadow, which its elongation may have shown:
     # one sphere leaves on its disc 3.7x the misfit around it, where lone
     # beads on the helix's tube read 0.5-1.7x)
-    on, around = disc_misfit(a, quad, opt.blur_px, noise, others, invalid)
+    on, around = disc_misfit(a, fit, opt.blur_px, noise, others, invalid)
     if on > _DISC_MISFIT * around:
         return b
     # (a pair nearly on top doubles the chord: fitted as one sphere it read
     # 1.5-3.1x the frame's contrast on the helix, where its larger beads, which
     # the pair tests took for pairs, read 0.8-1.0x)
-    if two and (typical[1] is None or quad[1][0][3] > _ONE_CONTRAST * typical[1]):
+    if two and (typical[1] is None or fit[1][0][3] > _ONE_CONTRAST * typical[1]):
         return b
-    quad = quad[1][0], joint_sigma(quad[2][0], opt.noise_kappa)
+    # (sphere (x, y, R, mu), centre σ) on the quadratic background
+    quad = fit[1][0], joint_sigma(fit[2][0], opt.noise_kappa)
     if structured(a, b.x, b.y, b.radius, opt.blur_px, noise, invalid, others):
         prof = fit_profile(a, start, opt.blur_px, noise, invalid, others)
         if prof is None:
