@@ -96,16 +96,16 @@ def test_a_marker_said_to_be_a_pair_is_narrowed_only_when_its_model_holds_one_sp
     # leave no misfit on the disc that would show them)
     rng = np.random.default_rng(5)
     opt = DetectOptions(diameter_px=(8.0, 14.0), blur_px=0.8, pixel_noise=0.01, noise_kappa=1.0)
-    b = Blob(40.0, 40.0, 6.5, 2.0, 0.06, 0.8, 1.2, ["overlap"], 40.0)
+    b = Blob(40.0, 40.0, 6.5, 2.0, 0.06, 0.8, 1.2, ["overlap"], 40.0, pair=True)
     big = cv2.GaussianBlur(_render(80, [(40.2, 39.9, 6.5)]), (0, 0), 0.8)
     big = (big + rng.normal(0.0, 0.01, big.shape)).astype(np.float32)
-    m = centre.model_centre(big, b, opt, 0.01, typical=(5.0, 0.06), two=True)
+    m = centre.model_centre(big, b, opt, 0.01, typical=(5.0, 0.06))
     assert m is not b and np.hypot(m.x - 40.2, m.y - 39.9) < 0.05 and m.sigma < 0.1
     pair = cv2.GaussianBlur(_render(80, [(39.75, 40.0, 5.0), (40.25, 40.0, 5.0)]), (0, 0), 0.8)
     pair = (pair + rng.normal(0.0, 0.01, pair.shape)).astype(np.float32)
-    assert centre.model_centre(pair, b, opt, 0.01, typical=(5.0, 0.06), two=True) is b
+    assert centre.model_centre(pair, b, opt, 0.01, typical=(5.0, 0.06)) is b
     # (unknown contrast: no narrowing)
-    assert centre.model_centre(big, b, opt, 0.01, typical=(5.0, None), two=True) is b
+    assert centre.model_centre(big, b, opt, 0.01, typical=(5.0, None)) is b
 
 
 def test_the_background_smoothed_in_under_a_shadow_follows_a_curved_ramp():

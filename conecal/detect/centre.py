@@ -61,7 +61,7 @@ _SMOOTH_RADII = 2.0
 
 
 def model_centre(a: np.ndarray, b: Blob, opt: DetectOptions, noise: float, invalid=None, others=(),
-                 typical=(0.0, None), two: bool = False) -> Blob:
+                 typical=(0.0, None)) -> Blob:
     """``b`` (measured alone by its centroid) with its centre and σ from a
     sphere model fitted on frame ``a`` (attenuation) about it, or ``b``
     unchanged where the model is not the better measurement. ``others``:
@@ -73,16 +73,14 @@ def model_centre(a: np.ndarray, b: Blob, opt: DetectOptions, noise: float, inval
     disturbed background), which a fit's σ alone would drop (tried on the
     helix's overlapping beads: pull std 1.00 -> 3.87 with 12 of 153 beyond
     5): only one whose shadow stands apart is measured so, with σ for the
-    background hidden under it (:func:`_apart_centre`). ``two``: ``b``'s σ
-    covers a second sphere nearly on top (an unsplit or hidden pair), which
-    only a model holding one sphere's contrast narrows."""
+    background hidden under it (:func:`_apart_centre`). One whose σ covers a
+    second sphere nearly on top (``b.pair``) only a model holding one
+    sphere's contrast narrows."""
     if not np.isfinite(b.sigma) or b.radius <= 1.0 or "truncated" in b.flags:
         return b
     if b.flags:
-        return _apart_centre(a, b, opt, noise, invalid, others, typical, two)
-    start = np.array([[b.x, b.y, b.radius, max(b.mu_px, 1e-6)]])
-    noise = max(noise, 1e-9)
-    fit = fit_group(a, start, opt.blur_px, noise, mask_out=others, invalid=invalid, quadratic=True)
+        return _apart_centre(a, b, opt, noise, invalid, others, typical)
+    start, noise, fit = _own_fit(a, b, opt, noise, invalid, others)
     if fit is None:
         return b
     sph = fit[1][0]
@@ -99,8 +97,7 @@ def model_centre(a: np.ndarray, b: Blob, opt: DetectOptions, noise: float, inval
                    sigma=float(np.sqrt(s_fit**2 + MODEL_CENTROID_PX**2 + excess)))
 
 
-def _apart_centre(a: np.ndarray, b: Blob, opt: DetectOptions, noise: float, invalid, others, typical,
-                  two: bool = False) -> Blob:
+def _apart_centre(a: np.ndarray, b: Blob, opt: DetectOptions, noise: float, invalid, others, typical) -> Blob:
     """A flagged marker (``overlap``: measured with its neighbours' models
     removed; ``clutter``: a disturbed background) whose shadow stands apart
     from every other (no disc overlaps its own), measured by its own sphere
@@ -117,13 +114,11 @@ def _apart_centre(a: np.ndarray, b: Blob, opt: DetectOptions, noise: float, inva
     shadows, :func:`.background.smooth_under`) is added to the fit's
     variance per axis. ``typical``: the frame's sphere radius (px) and
     contrast (None when unknown), for a marker whose window misread them.
-    ``two``: a marker said to be two shadows nearly on top, kept unless the
-    model holds one sphere's contrast per px of chord (two read more)."""
+    A marker said to be two shadows nearly on top (``b.pair``) is kept unless
+    the model holds one sphere's contrast per px of chord (two read more)."""
     if any(np.hypot(x - b.x, y - b.y) < r + b.radius for x, y, r in others):
         return b
-    start = np.array([[b.x, b.y, b.radius, max(b.mu_px, 1e-6)]])
-    noise = max(noise, 1e-9)
-    fit = fit_group(a, start, opt.blur_px, noise, mask_out=others, invalid=invalid, quadratic=True)
+    start, noise, fit = _own_fit(a, b, opt, noise, invalid, others)
     if fit is None:
         return b
     # (a second sphere in the shadow, which its elongation may have shown:
@@ -135,7 +130,7 @@ def _apart_centre(a: np.ndarray, b: Blob, opt: DetectOptions, noise: float, inva
     # (a pair nearly on top doubles the chord: fitted as one sphere it read
     # 1.5-3.1x the frame's contrast on the helix, where its larger beads, which
     # the pair tests took for pairs, read 0.8-1.0x)
-    if two and (typical[1] is None or fit[1][0][3] > _ONE_CONTRAST * typical[1]):
+    if b.pair and (typical[1] is None or fit[1][0][3] > _ONE_CONTRAST * typical[1]):
         return b
     # (sphere (x, y, R, mu), centre σ) on the quadratic background
     quad = fit[1][0], joint_sigma(fit[2][0], opt.noise_kappa)
@@ -158,6 +153,15 @@ def _apart_centre(a: np.ndarray, b: Blob, opt: DetectOptions, noise: float, inva
         return b
     excess = max(gap2 / 2 - b.sigma**2 - s2, 0.0)
     return replace(b, x=float(x), y=float(y), sigma=float(np.sqrt(s2 + excess)))
+
+
+def _own_fit(a: np.ndarray, b: Blob, opt: DetectOptions, noise: float, invalid, others):
+    """``b``'s sphere model on a quadratic background, the shadows ``others``
+    left out: (start (1, 4), the noise used, :func:`.overlap.fit_group`'s
+    result or None)."""
+    start = np.array([[b.x, b.y, b.radius, max(b.mu_px, 1e-6)]])
+    noise = max(noise, 1e-9)
+    return start, noise, fit_group(a, start, opt.blur_px, noise, mask_out=others, invalid=invalid, quadratic=True)
 
 
 def _fit_less(a: np.ndarray, box, bg: np.ndarray, start: np.ndarray, opt: DetectOptions, noise: float, invalid,

@@ -82,8 +82,8 @@ def detect_frame(a: np.ndarray, opt: DetectOptions) -> list[Blob]:
     disturbed = {(x, y) for x, y in seeds if any((b.x - x) ** 2 + (b.y - y) ** 2 < b.radius**2
                                                  for b in spoilt + merged if "clutter" in b.flags)}
     spoilt = [b for b in spoilt if not any((b.x - x) ** 2 + (b.y - y) ** 2 < b.radius**2 for x, y in seeds)]
-    out, two = measure_crowded(a, kept, merged, opt, noise, invalid, peaks, seeds, deep, spoilt,
-                               disturbed) if kept or merged or seeds else ([], [])
+    out = measure_crowded(a, kept, merged, opt, noise, invalid, peaks, seeds, deep, spoilt,
+                          disturbed) if kept or merged or seeds else []
     spoilt = [b for b in spoilt if not any(np.hypot(o.x - b.x, o.y - b.y) < b.radius for o in out)]
     # a misshapen clutter blob is kept only if removing an edge's background beside
     # it leaves a clean sphere shadow, away from every marker already found
@@ -95,14 +95,9 @@ def detect_frame(a: np.ndarray, opt: DetectOptions) -> list[Blob]:
     # (a wire's or a screw's length that a seed or a split took for a sphere)
     out = [b for b, rod in zip(out, on_rods(a, out, opt.blur_px, invalid)) if not rod]
     out = [elongation_bound(b, opt.blur_px, opt.max_anisotropy) if "overlap" in b.flags else b for b in out]
-    # (the markers whose σ covers a second sphere nearly on top, which no split
-    # separated or only the density shows: a one-sphere model narrows it only
-    # where it holds one sphere's contrast, .centre)
-    held = hidden_pairs(a, out, opt.blur_px)
-    two += [n for n, b in zip(held, out) if n is not b]
     # (a marker is a measured centre with a sigma: one without never leaves
     # here, where it made the whole scan's markers file invalid)
-    out = [b for b in held if np.isfinite((b.x, b.y, b.sigma)).all()]
+    out = [b for b in hidden_pairs(a, out, opt.blur_px) if np.isfinite((b.x, b.y, b.sigma)).all()]
     # (one shadow, one marker: two paths that measured the same sphere gave
     # an independent helix's bead twice, 0.05 px apart; the surer one stays)
     one: list[Blob] = []
@@ -111,8 +106,7 @@ def detect_frame(a: np.ndarray, opt: DetectOptions) -> list[Blob]:
             one.append(b)
     out = [b for b in out if any(b is o for o in one)]
     # a shadow that stands apart: its centre from its fitted model, 2-3x surer than its centroid (.centre)
-    return [model_centre(a, b, opt, noise, invalid, neighbours(b, out, peaks, opt), (R1, mu1),
-                         two=any(b is t for t in two)) for b in out]
+    return [model_centre(a, b, opt, noise, invalid, neighbours(b, out, peaks, opt), (R1, mu1)) for b in out]
 
 
 def _typical(kept: list[Blob], opt: DetectOptions):
@@ -191,9 +185,7 @@ def measure_crowded(a: np.ndarray, kept: list[Blob], merged: list[Blob], opt: De
     clutter (they carry the flag into the joint fit). A seed touching no
     other shadow is fitted by itself and kept only with one sphere's
     attenuation (flagged clutter, not overlap); a split whose parts are a
-    rod's lengths (:func:`conecal.detect.rod.rod_like`) is dropped.
-    Returns (blobs, those of them measured for an unsplit pair: their σ
-    covers two spheres)."""
+    rod's lengths (:func:`conecal.detect.rod.rod_like`) is dropped."""
     R1, mu1 = _typical(kept, opt)
     seeds = list(seeds)
     parts, gone, singles, unsplit = [], set(), [], []
@@ -408,14 +400,13 @@ def measure_crowded(a: np.ndarray, kept: list[Blob], merged: list[Blob], opt: De
             out[i] = replace(out[i], flags=sorted((set(out[i].flags) - {"overlap"}) | {"clutter"}))
     out = [b for i, b in enumerate(out) if b is not None and i not in new]
     # (a pair measured again with its neighbours keeps what its elongation said)
-    paired = []
     for p in unsplit:
         near = [n for n, b in enumerate(out) if np.hypot(b.x - p.x, b.y - p.y) < 0.5 * p.radius]
         for n in near:
-            out[n] = replace(out[n], sigma=max(out[n].sigma, p.sigma), flags=sorted(set(out[n].flags) | {"overlap"}))
-            paired.append(out[n])
+            out[n] = replace(out[n], sigma=max(out[n].sigma, p.sigma), flags=sorted(set(out[n].flags) | {"overlap"}),
+                             pair=True)
     return [beside_edge(a, b, opt, noise, invalid, neighbours(b, out, peaks, opt)) if "overlap" not in b.flags
-            else b for b in out], paired
+            else b for b in out]
 
 
 def _one_sphere(m: Blob, kept: list[Blob]) -> bool:

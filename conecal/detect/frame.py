@@ -102,6 +102,7 @@ class Blob:
     flags: list
     snr: float
     profile_misfit: float = 0.0   # |b - best chord profile| / |b| in the window
+    pair: bool = False            # sigma covers a second sphere nearly on top (an unsplit or hidden pair)
 
 
 def _rough_blob(a: np.ndarray, cx: float, cy: float, r: float, blur: float, noise: float, opt: DetectOptions):

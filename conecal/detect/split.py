@@ -221,7 +221,7 @@ def hidden_pairs(a: np.ndarray, blobs: list, blur: float) -> list:
         b = out[i]
         h = _stretch(b, blur) if np.isfinite(b.anisotropy) else 0.0
         out[i] = replace(b, sigma=float(np.hypot(b.sigma, max(h, _HIDDEN_OFFSET * b.radius))),
-                         flags=sorted(set(b.flags) | {"overlap"}))
+                         flags=sorted(set(b.flags) | {"overlap"}), pair=True)
     return out
 
 
