@@ -431,6 +431,23 @@ def test_two_helix_spheres_in_one_round_shadow_are_never_one_confident_centre(he
 
 
 
+def test_spheres_hidden_in_one_shadow_are_fitted_as_two_or_three(helix):
+    # the independent helix: two pairs 0.3-0.4 of a diameter apart on the tube
+    # (seed 2, frames 3 and 6), one 0.8 apart (seed 3, frame 0) and a chain of
+    # three overlapping by a fifth of a diameter (seed 3, frame 1). Each was one
+    # marker between them whose σ (1.2-5 px) covered them; one sphere misfits
+    # its disc 4-8x the patch around it, two or three fit it to the noise
+    for seed, k, ids in ((2, 3, (11, 12)), (2, 6, (0, 1)), (3, 0, (16, 17)), (3, 1, (17, 33, 49))):
+        blobs, got = helix.detect(seed, k), set()
+        for t in helix.scan(seed)[1][k]:
+            if t["id"] in ids:
+                i = int(np.argmin([np.hypot(b.x - t["x"], b.y - t["y"]) for b in blobs]))
+                b, e = blobs[i], np.hypot(blobs[i].x - t["x"], blobs[i].y - t["y"])
+                assert e < 0.35 and e < 3 * b.sigma and "overlap" in b.flags, (seed, k, t["id"], e, b)
+                got.add(i)
+        assert len(got) == len(ids), (seed, k)     # one marker each
+
+
 def test_chains_of_three_across_a_tubes_wall_seen_end_on_are_split(helix):
     # the independent helix, seed 2, frame 1 (along the helix's axis): two chains
     # of three touching spheres lie across the tube's wall seen end-on. No window

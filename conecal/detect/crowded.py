@@ -25,7 +25,8 @@ from .edge import CONE_OFFSET_PX, beside_edge
 from .rod import on_rods, rod_like, run_on
 from .overlap import components, fit_group, group_box, groups_of, joint_sigma, neighbours, render_box
 from .size import like_neighbours, nearest_shadows
-from .split import elongation_bound, hidden_pairs, is_pair, peaks_in, split, unsplit_pair
+from .pairs import elongation_bound, fit_covered, hidden_pairs, is_pair, unsplit_pair
+from .split import peaks_in, split
 
 # A joint model's centre that no centroid confirms (a seed, a split part, or a
 # shadow whose centroid cannot be had beside its neighbours) is off by more
@@ -105,6 +106,9 @@ def detect_frame(a: np.ndarray, opt: DetectOptions) -> list[Blob]:
         if all(np.hypot(b.x - o.x, b.y - o.y) > 0.25 * min(b.radius, o.radius) for o in one):
             one.append(b)
     out = [b for b in out if any(b is o for o in one)]
+    # a marker whose σ covers a second sphere (on top of it, or beside it in an
+    # elongated shadow) is fitted as two, where two explain it
+    out = fit_covered(a, out, opt, noise, invalid, peaks, R1, mu1)
     # a shadow that stands apart: its centre from its fitted model, 2-3x surer than its centroid (.centre)
     return [model_centre(a, b, opt, noise, invalid, neighbours(b, out, peaks, opt), (R1, mu1)) for b in out]
 

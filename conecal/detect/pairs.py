@@ -1,0 +1,272 @@
+"""Two or three spheres nearly on top of each other, in one shadow.
+
+Where shadows overlap by more than half a diameter they make one round or
+slightly elongated blob that the splits of :mod:`.split` do not separate. A
+blob that may hide a second sphere is said to (its σ covers it: an unsplit
+pair's elongation, a density beyond the frame's spheres', a stretch beyond
+any sphere's), and where one sphere's model misfits its disc and two or
+three fit it to the noise, each of the spheres is measured by that joint
+fit. Units: px, attenuation.
+"""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+import numpy as np
+
+from ..stats import mad_sigma
+from .frame import moment_trace
+from .overlap import disc_misfit, fit_group, joint_sigma, neighbours
+from .split import ADEQUATE
+
+# a lone sphere's anisotropy is 1.03 median, 1.10 at the 95th percentile (an
+# independent helix); one stretched by an intensifier's periphery read 1.07
+_PAIR_ANISOTROPY = 1.1
+# ... and across its long axis at least this fraction of one sphere's second
+# moment: an 8-bit log display narrows two overlapping shadows to 0.56-0.72
+# (an independent renderer's ball phantom)
+_PAIR_NARROWEST = 0.5
+# a blob this much denser (attenuation per px of chord) than the frame's spheres
+# at its background's level may be two shadows nearly on top of each other: on
+# an independent helix such pairs read 1.36-1.85, lone spheres 1.31 at most
+# (3 of 1515 over 1.3); on log displays no lone sphere did, once the density's
+# drift with the background is taken out (grid 1.09, ball phantom 1.2 at most)
+_HIDDEN_DENSITY = 1.3
+# ... holding at least this many of the frame's spheres' attenuation (its radius
+# cubed, its excess density): a phantom's smaller spheres may read denser
+_HIDDEN_ATTENUATION = 1.4
+# a blob's background level (attenuation) is held when this close to three of
+# the spheres the density's line was fitted on
+_HIDDEN_LEVEL = 0.05
+# ... unless so many blobs are that dense that they are a class of their own
+# (spheres of a denser material)
+_HIDDEN_RARE = 0.15
+# a pair no split separates lies up to about this fraction of its radius
+# from their midpoint (0.15-0.33 on the independent helix)
+_HIDDEN_OFFSET = 0.25
+# two spheres fitted where one marker's σ covered them (:func:`two_on_top`):
+# at least this many of the frame's radii apart, explaining the blob this
+# much better than one sphere, and off by this fraction of their radius
+# beyond the joint fit's σ (the independent helix, seeds 2-3)
+_TWO_APART = 0.15
+_TWO_GAIN = 0.8
+_TWO_MODEL = 0.02
+# ... where one sphere leaves this many times the misfit on its disc as around
+# it: pairs 0.2-0.5 of a diameter apart read 2-7.5 (the helix), lone spheres on
+# its tube 0.3-1.4 and 0.5-1.7 (.centre's guard)
+_ONE_MISFIT = 1.5
+# an overlap marker whose σ exceeds this fraction of its radius may hide a
+# second sphere beside it: fitted as two (a lone one's σ is 0.01-0.1 of it)
+_COVERED = 0.2
+
+
+def fit_covered(a, out: list, opt, noise: float, invalid, peaks, R1: float, mu1) -> list:
+    """``out`` with each marker whose σ covers a second sphere (``pair``, or
+    an overlap's σ over ``_COVERED`` of its radius) replaced by the two or
+    three spheres :func:`two_on_top` fits, when no part falls on another
+    marker. ``R1``, ``mu1``: the frame's sphere radius (px) and contrast."""
+    res = list(out)
+    for b in out:
+        if not (b.pair or ("overlap" in b.flags and b.sigma > _COVERED * b.radius)):
+            continue
+        parts = two_on_top(a, b, R1, mu1, opt.blur_px, noise, opt.noise_kappa, neighbours(b, res, peaks, opt), invalid)
+        if parts and all(np.hypot(p.x - o.x, p.y - o.y) > 0.5 * max(p.radius, o.radius)
+                         for p in parts for o in res if o is not b):
+            res = [o for o in res if o is not b] + parts
+    return res
+
+
+def _moments(m, blur: float) -> tuple[float, float]:
+    """Blob ``m``'s principal second moments (px^2, major then minor), from
+    its radius and anisotropy as :func:`conecal.detect.frame.refine` made them."""
+    trace = moment_trace(m.radius, blur)
+    minor = trace / (1 + m.anisotropy**2)
+    return trace - minor, minor
+
+
+def _stretch(m, blur: float, beyond: float = 1.0) -> float:
+    """The half-separation h (px) that blob ``m``'s elongation beyond an
+    anisotropy of ``beyond`` shows: two round shadows 2h apart along x have
+    second moments c + h^2 and c."""
+    major, minor = _moments(m, blur)
+    lone = (major + minor) * (beyond**2 - 1) / (beyond**2 + 1)
+    return float(np.sqrt(max(major - minor - lone, 0.0)))
+
+
+def is_pair(m, R1: float, mu1, blur: float) -> bool:
+    """Whether blob ``m`` (deep, or merged and no split found) is two of the
+    frame's spheres (radius ``R1`` px, contrast ``mu1``; blur ``blur`` px)
+    nearly on top of each other: across its long axis as narrow as one
+    (``_PAIR_NARROWEST``-1.3x its second moment), holding 1.7-2.8 times one's
+    attenuation, and elongated beyond a lone sphere (``_PAIR_ANISOTROPY``).
+    A phantom's larger ball is as wide across as along; on an 8-bit log
+    display a lone sphere on a thicker body holds up to 1.9x the attenuation
+    (stretched to 1.07 by an intensifier's periphery); on a real intensifier
+    recording lone spheres at the periphery read 1.5-1.56x at 1.11-1.18.
+    A blob whose centroid has no sigma (a strong peak handed on unmeasured)
+    says nothing of where a pair lies: never one."""
+    if mu1 is None or m.anisotropy < _PAIR_ANISOTROPY or not np.isfinite(m.sigma):
+        return False
+    one = moment_trace(R1, blur) / 2
+    return _PAIR_NARROWEST <= _moments(m, blur)[1] / one <= 1.3 and 1.7 <= m.mu_px * m.radius**3 / (mu1 * R1**3) <= 2.8
+
+
+def unsplit_pair(m, blur: float):
+    """Blob ``m``, the shadow of two spheres nearly on top of each other,
+    flagged overlap, its sigma widened by the half-separation its elongation
+    shows (:func:`_stretch`)."""
+    return replace(m, sigma=float(np.hypot(m.sigma, _stretch(m, blur))), flags=sorted(set(m.flags) | {"overlap"}))
+
+
+def elongation_bound(m, blur: float, most: float):
+    """Blob ``m`` (flagged overlap: a neighbour's shadow within reach), more
+    elongated than any sphere (anisotropy over ``most``), with its sigma at
+    least the offset that its elongation beyond a lone sphere's
+    (``_PAIR_ANISOTROPY``) shows (:func:`_stretch`). Two small spheres half
+    overlapped hold one large sphere's attenuation on a phantom of two sizes,
+    so no density test sees them; one such marker read sigma 0.5 px, 2.3 px
+    from either sphere."""
+    if not np.isfinite(m.anisotropy) or m.anisotropy <= most:
+        return m
+    h = _stretch(m, blur, _PAIR_ANISOTROPY)
+    return replace(m, sigma=h) if h > m.sigma else m
+
+
+def hidden_pairs(a: np.ndarray, blobs: list, blur: float) -> list:
+    """``blobs`` with those that may be two shadows nearly on top of each
+    other (a second sphere hidden within a fraction of the radius, which no
+    split separates and no elongation shows) flagged overlap, their sigma at
+    least their possible offset from either sphere (px): a blob far denser
+    than the frame's spheres at its background's level, where few are.
+
+    A blob's density (attenuation per px of chord) drifts with the
+    background's level on a log or gamma display (1.4-1.7x on a plate's
+    thick part): it is referred to a robust straight line of log density
+    against the level (the median of a ring outside the shadow, other
+    shadows left out), fitted over the frame's blobs, where spheres on a
+    background of about its level hold the line."""
+    if len(blobs) < 8:
+        return blobs
+    level = np.array([_ring_level(a, b, blobs, blur) for b in blobs])
+    dens = np.log(np.array([max(b.mu_px, 1e-12) for b in blobs]))
+    ok = np.isfinite(level) & np.array([b.mu_px > 0 for b in blobs])
+    if ok.sum() < 8:
+        return blobs
+    # a robust straight line of log density against the level, 2.5 sigma (MAD)
+    # rejection; a flat one when the levels hardly differ
+    lv, dv = level[ok], dens[ok]
+    A = np.c_[np.ones(len(lv)), lv] if np.ptp(lv) > 0.02 else np.ones((len(lv), 1))
+    keep = np.ones(len(lv), bool)
+    for _ in range(3):
+        line = np.linalg.lstsq(A[keep], dv[keep], rcond=None)[0]
+        res = dv - A @ line
+        keep_new = np.abs(res) <= 2.5 * mad_sigma(res) + 1e-9
+        if keep_new.sum() < 8:
+            break
+        keep = keep_new
+    line = np.r_[line, 0.0][:2]
+    excess = np.where(ok, np.exp(dens - line[0] - line[1] * np.where(ok, level, 0.0)), 0.0)
+    # (no claim where the line is not held by spheres on a background of about
+    # that level: a plate's thick part under two spheres, on a log display)
+    held = np.array([np.sum(np.abs(lv[keep] - v) <= _HIDDEN_LEVEL) >= 3 if f else False for v, f in zip(level, ok)])
+    excess = np.where(held, excess, 0.0)
+    size = np.array([b.radius for b in blobs])
+    dense = ok & (excess >= _HIDDEN_DENSITY) & (excess * (size / np.median(size)) ** 3 >= _HIDDEN_ATTENUATION)
+    if dense.sum() > _HIDDEN_RARE * len(blobs):
+        return blobs
+    out = list(blobs)
+    for i in np.flatnonzero(dense):
+        b = out[i]
+        h = _stretch(b, blur) if np.isfinite(b.anisotropy) else 0.0
+        out[i] = replace(b, sigma=float(np.hypot(b.sigma, max(h, _HIDDEN_OFFSET * b.radius))),
+                         flags=sorted(set(b.flags) | {"overlap"}), pair=True)
+    return out
+
+
+def two_on_top(a: np.ndarray, m, R1: float, mu1, blur: float, noise: float, kappa: float, mask_out, invalid):
+    """Blob ``m``, whose σ covers a second sphere nearly on top (``m.pair``) or
+    beside it (an elongation beyond any sphere's), as two spheres, else three:
+    fitted jointly, started evenly along four directions through its centre
+    (a matched filter on the residual finds no second peak where two are
+    0.2-0.5 of a diameter apart). The parts (Blobs flagged overlap, σ from
+    the joint fit, correlated noise and ``_TWO_MODEL`` of the radius
+    counted), or None unless one sphere leaves ``_ONE_MISFIT`` times the
+    misfit on its disc as around it (:func:`disc_misfit`) and the parts
+    leave no more than ``ADEQUATE`` or than around them, with chi-square
+    ``_TWO_GAIN`` times one's or less; each has the frame's size (0.6-1.6
+    ``R1``), lies ``_TWO_APART`` R1 or more from the others and holds the
+    frame's contrast (0.6-1.6 ``mu1``) or, one at most, two spheres'
+    (1.6-2.6: one more hidden in it, flagged a pair, σ at least
+    ``_HIDDEN_OFFSET`` of its radius). A lone sphere on a curved background
+    gives parts on top of each other, or one of a few percent of its
+    contrast soaking up the background: both refused."""
+    if mu1 is None or not np.isfinite(m.sigma):
+        return None
+    one = fit_group(a, np.array([[m.x, m.y, m.radius, m.mu_px]]), blur, noise, mask_out, invalid, quadratic=True)
+    if one is None:
+        return None
+    on1, off1 = disc_misfit(a, one, blur, noise, mask_out, invalid)
+    if on1 <= _ONE_MISFIT * max(off1 if np.isfinite(off1) else 0.0, 1.0):
+        return None
+    major, minor = _moments(m, blur)
+    for k, spread in ((2, 1.0), (3, 1.5)):
+        # k spheres evenly along a line show major - minor = spread * (their spacing / 2)^2
+        h = max(np.sqrt(max(major - minor, 0.0) / spread), 0.3 * m.radius)
+        best = None
+        for t in np.arange(4) * np.pi / 4:
+            off = (np.arange(k) - (k - 1) / 2) * (2 * h if k == 2 else h * 2 / np.sqrt(2))
+            start = np.c_[m.x + off * np.cos(t), m.y + off * np.sin(t), np.full(k, 0.85 * m.radius), np.full(k, mu1)]
+            fit = fit_group(a, start, blur, noise, mask_out, invalid, box=one[0], quadratic=True)
+            if fit is not None and (best is None or fit[4] < best[4]):
+                best = fit
+        parts = _on_top_parts(a, m, best, one[4], R1, mu1, blur, noise, kappa, mask_out, invalid)
+        if parts is not None:
+            return parts
+    return None
+
+
+def _on_top_parts(a, m, fit, chi2_one: float, R1: float, mu1: float, blur, noise, kappa, mask_out, invalid):
+    """:func:`two_on_top`'s parts from joint ``fit``, or None when they fail its tests."""
+    if fit is None:
+        return None
+    _, sph, sig, _, chi2, _ = fit
+    dense = sph[:, 3] / mu1
+    gaps = np.hypot(sph[:, None, 0] - sph[None, :, 0], sph[:, None, 1] - sph[None, :, 1])
+    if (np.any((sph[:, 2] < 0.6 * R1) | (sph[:, 2] > 1.6 * R1)) or np.any((dense < 0.6) | (dense > 2.6))
+            or np.sum(dense > 1.6) > 1 or np.min(gaps + np.eye(len(sph)) * 1e9) < _TWO_APART * R1
+            or chi2 > _TWO_GAIN * chi2_one):
+        return None
+    on, off = disc_misfit(a, fit, blur, noise, mask_out, invalid)
+    if on > max(ADEQUATE, off):
+        return None
+    parts = []
+    for (x, y, R, mu), s, d in zip(sph, sig, dense):
+        sigma = float(np.hypot(joint_sigma(s, kappa), _TWO_MODEL * R))
+        if d > 1.6:
+            sigma = float(np.hypot(sigma, _HIDDEN_OFFSET * R))
+        parts.append(replace(m, x=float(x), y=float(y), radius=float(R), mu_px=float(mu), anisotropy=1.0,
+                             sigma=sigma, flags=sorted(set(m.flags) | {"overlap"}), pair=bool(d > 1.6)))
+    return parts
+
+
+def _ring_level(a: np.ndarray, b, blobs: list, blur: float) -> float:
+    """The background's level (attenuation) about blob ``b``: the median of a
+    3 px ring just outside its shadow, other shadows left out; nan when
+    fewer than 8 pixels remain."""
+    r0 = b.radius + 2 * blur + 1
+    r1 = r0 + 3
+    rows, cols = a.shape
+    c0, c1 = max(int(b.x - r1), 0), min(int(b.x + r1) + 2, cols)
+    q0, q1 = max(int(b.y - r1), 0), min(int(b.y + r1) + 2, rows)
+    if c1 <= c0 or q1 <= q0:
+        return float("nan")
+    yy, xx = np.mgrid[q0:q1, c0:c1]
+    d2 = (xx - b.x) ** 2 + (yy - b.y) ** 2
+    ring = (d2 >= r0 * r0) & (d2 <= r1 * r1)
+    for o in blobs:
+        if o is not b and abs(o.x - b.x) < r1 + o.radius + 3 and abs(o.y - b.y) < r1 + o.radius + 3:
+            ring &= (xx - o.x) ** 2 + (yy - o.y) ** 2 > (o.radius + 2 * blur + 1) ** 2
+    v = a[q0:q1, c0:c1][ring]
+    v = v[np.isfinite(v)]
+    return float(np.median(v)) if v.size >= 8 else float("nan")
