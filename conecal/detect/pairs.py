@@ -17,7 +17,7 @@ import numpy as np
 
 from ..stats import mad_sigma
 from .frame import moment_trace
-from .overlap import disc_misfit, fit_group, joint_sigma, neighbours
+from .overlap import disc_misfit, fit_group, group_box, joint_sigma, neighbours
 from .split import ADEQUATE
 
 # a lone sphere's anisotropy is 1.03 median, 1.10 at the 95th percentile (an
@@ -52,28 +52,40 @@ _HIDDEN_OFFSET = 0.25
 _TWO_APART = 0.15
 _TWO_GAIN = 0.8
 _TWO_MODEL = 0.02
-# ... where one sphere leaves this many times the misfit on its disc as around
-# it: pairs 0.2-0.5 of a diameter apart read 2-7.5 (the helix), lone spheres on
-# its tube 0.3-1.4 and 0.5-1.7 (.centre's guard)
+# ... where the parts leave this many times less misfit on their discs than one
+# sphere: pairs 0.2-0.5 of a diameter apart 1.7-12 on the helix (one sphere's
+# misfit there 1.4-7.5x that around it, on the tube's curved background)
 _ONE_MISFIT = 1.5
 # an overlap marker whose σ exceeds this fraction of its radius may hide a
 # second sphere beside it: fitted as two (a lone one's σ is 0.01-0.1 of it)
 _COVERED = 0.2
+# ... and the markers whose centres lie closer than this fraction of the
+# radii's sum to it are fitted again with it (a pair beside a third sphere)
+_PRESSED = 0.9
 
 
 def fit_covered(a, out: list, opt, noise: float, invalid, peaks, R1: float, mu1) -> list:
     """``out`` with each marker whose σ covers a second sphere (``pair``, or
     an overlap's σ over ``_COVERED`` of its radius) replaced by the two or
-    three spheres :func:`two_on_top` fits, when no part falls on another
-    marker. ``R1``, ``mu1``: the frame's sphere radius (px) and contrast."""
+    three spheres :func:`two_on_top` fits, and the markers pressed against
+    it (closer than ``_PRESSED`` of their radii's sum) by their refits, when
+    no part falls on another marker; a part that holds two spheres' contrast
+    is tried once more, beside its sibling. ``R1``, ``mu1``: the frame's
+    sphere radius (px) and contrast."""
     res = list(out)
-    for b in out:
-        if not (b.pair or ("overlap" in b.flags and b.sigma > _COVERED * b.radius)):
+    todo = [(b, True) for b in out if b.pair or ("overlap" in b.flags and b.sigma > _COVERED * b.radius)]
+    while todo:
+        b, again = todo.pop(0)
+        if not any(b is o for o in res):
             continue
-        parts = two_on_top(a, b, R1, mu1, opt.blur_px, noise, opt.noise_kappa, neighbours(b, res, peaks, opt), invalid)
+        pressed = [o for o in res if o is not b and np.hypot(o.x - b.x, o.y - b.y) < _PRESSED * (o.radius + b.radius)]
+        mask = [n for n in neighbours(b, res, peaks, opt)
+                if all(np.hypot(n[0] - o.x, n[1] - o.y) > 0.5 * o.radius for o in pressed)]
+        parts = two_on_top(a, b, R1, mu1, opt.blur_px, noise, opt.noise_kappa, mask, invalid, pressed)
         if parts and all(np.hypot(p.x - o.x, p.y - o.y) > 0.5 * max(p.radius, o.radius)
-                         for p in parts for o in res if o is not b):
-            res = [o for o in res if o is not b] + parts
+                         for p in parts for o in res if o is not b and all(o is not q for q in pressed)):
+            res = [o for o in res if o is not b and all(o is not q for q in pressed)] + parts
+            todo += [(p, False) for p in parts if p.pair and again]
     return res
 
 
@@ -184,31 +196,36 @@ def hidden_pairs(a: np.ndarray, blobs: list, blur: float) -> list:
     return out
 
 
-def two_on_top(a: np.ndarray, m, R1: float, mu1, blur: float, noise: float, kappa: float, mask_out, invalid):
+def two_on_top(a: np.ndarray, m, R1: float, mu1, blur: float, noise: float, kappa: float, mask_out, invalid,
+               pressed=()):
     """Blob ``m``, whose σ covers a second sphere nearly on top (``m.pair``) or
     beside it (an elongation beyond any sphere's), as two spheres, else three:
     fitted jointly, started evenly along four directions through its centre
     (a matched filter on the residual finds no second peak where two are
-    0.2-0.5 of a diameter apart). The parts (Blobs flagged overlap, σ from
-    the joint fit, correlated noise and ``_TWO_MODEL`` of the radius
-    counted), or None unless one sphere leaves ``_ONE_MISFIT`` times the
-    misfit on its disc as around it (:func:`disc_misfit`) and the parts
-    leave no more than ``ADEQUATE`` or than around them, with chi-square
-    ``_TWO_GAIN`` times one's or less; each has the frame's size (0.6-1.6
-    ``R1``), lies ``_TWO_APART`` R1 or more from the others and holds the
-    frame's contrast (0.6-1.6 ``mu1``) or, one at most, two spheres'
-    (1.6-2.6: one more hidden in it, flagged a pair, σ at least
-    ``_HIDDEN_OFFSET`` of its radius). A lone sphere on a curved background
-    gives parts on top of each other, or one of a few percent of its
-    contrast soaking up the background: both refused."""
+    0.2-0.5 of a diameter apart), with the markers ``pressed`` against it
+    fitted again with them. The parts (Blobs flagged overlap, σ from the
+    joint fit, correlated noise and ``_TWO_MODEL`` of the radius counted;
+    ``m``'s first, then the pressed ones'), or None unless the parts leave
+    ``_ONE_MISFIT`` times less misfit on their discs (:func:`disc_misfit`)
+    than ``m`` fitted as one sphere, and no more than ``ADEQUATE`` or than
+    around them, with chi-square ``_TWO_GAIN`` times one's or less (not
+    asked with markers pressed against it: the patch around them all holds
+    more background); each has the frame's size (0.6-1.6 ``R1``), lies
+    ``_TWO_APART`` R1 or more from the others and holds the frame's contrast
+    (0.6-1.6 ``mu1``) or, one at most, two spheres' (1.6-2.6: one more
+    hidden in it, flagged a pair, σ at least ``_HIDDEN_OFFSET`` of its
+    radius). A lone sphere on a curved background gives parts on top of each
+    other, or one of a few percent of its contrast soaking up the
+    background: both refused."""
     if mu1 is None or not np.isfinite(m.sigma):
         return None
-    one = fit_group(a, np.array([[m.x, m.y, m.radius, m.mu_px]]), blur, noise, mask_out, invalid, quadratic=True)
+    rest = np.array([[o.x, o.y, o.radius, o.mu_px] for o in pressed]).reshape(-1, 4)
+    base = np.vstack([[[m.x, m.y, m.radius, m.mu_px]], rest])
+    box = group_box(a.shape, base, blur) if len(rest) else None
+    one = fit_group(a, base, blur, noise, mask_out, invalid, box=box, quadratic=True)
     if one is None:
         return None
-    on1, off1 = disc_misfit(a, one, blur, noise, mask_out, invalid)
-    if on1 <= _ONE_MISFIT * max(off1 if np.isfinite(off1) else 0.0, 1.0):
-        return None
+    on1 = disc_misfit(a, one, blur, noise, mask_out, invalid)[0]
     major, minor = _moments(m, blur)
     for k, spread in ((2, 1.0), (3, 1.5)):
         # k spheres evenly along a line show major - minor = spread * (their spacing / 2)^2
@@ -217,17 +234,22 @@ def two_on_top(a: np.ndarray, m, R1: float, mu1, blur: float, noise: float, kapp
         for t in np.arange(4) * np.pi / 4:
             off = (np.arange(k) - (k - 1) / 2) * (2 * h if k == 2 else h * 2 / np.sqrt(2))
             start = np.c_[m.x + off * np.cos(t), m.y + off * np.sin(t), np.full(k, 0.85 * m.radius), np.full(k, mu1)]
-            fit = fit_group(a, start, blur, noise, mask_out, invalid, box=one[0], quadratic=True)
+            fit = fit_group(a, np.vstack([start, rest]), blur, noise, mask_out, invalid, box=one[0], quadratic=True)
             if fit is not None and (best is None or fit[4] < best[4]):
                 best = fit
-        parts = _on_top_parts(a, m, best, one[4], R1, mu1, blur, noise, kappa, mask_out, invalid)
+        parts = _on_top_parts(a, [m] * k + list(pressed), best, one[4] if not len(rest) else None, on1, R1, mu1,
+                              blur, noise, kappa, mask_out, invalid)
         if parts is not None:
             return parts
     return None
 
 
-def _on_top_parts(a, m, fit, chi2_one: float, R1: float, mu1: float, blur, noise, kappa, mask_out, invalid):
-    """:func:`two_on_top`'s parts from joint ``fit``, or None when they fail its tests."""
+def _on_top_parts(a, was: list, fit, chi2_one, on_one: float, R1: float, mu1: float, blur, noise, kappa, mask_out,
+                  invalid):
+    """:func:`two_on_top`'s parts from joint ``fit`` (each part from the
+    marker ``was`` it stands for), or None when they fail its tests;
+    ``chi2_one``, ``on_one``: the one-sphere fit's chi-square (None when
+    markers were pressed against it) and misfit on the discs."""
     if fit is None:
         return None
     _, sph, sig, _, chi2, _ = fit
@@ -235,18 +257,18 @@ def _on_top_parts(a, m, fit, chi2_one: float, R1: float, mu1: float, blur, noise
     gaps = np.hypot(sph[:, None, 0] - sph[None, :, 0], sph[:, None, 1] - sph[None, :, 1])
     if (np.any((sph[:, 2] < 0.6 * R1) | (sph[:, 2] > 1.6 * R1)) or np.any((dense < 0.6) | (dense > 2.6))
             or np.sum(dense > 1.6) > 1 or np.min(gaps + np.eye(len(sph)) * 1e9) < _TWO_APART * R1
-            or chi2 > _TWO_GAIN * chi2_one):
+            or (chi2_one is not None and chi2 > _TWO_GAIN * chi2_one)):
         return None
     on, off = disc_misfit(a, fit, blur, noise, mask_out, invalid)
-    if on > max(ADEQUATE, off):
+    if on > max(ADEQUATE, off) or on * _ONE_MISFIT > on_one:
         return None
     parts = []
-    for (x, y, R, mu), s, d in zip(sph, sig, dense):
+    for (x, y, R, mu), s, d, w in zip(sph, sig, dense, was):
         sigma = float(np.hypot(joint_sigma(s, kappa), _TWO_MODEL * R))
         if d > 1.6:
             sigma = float(np.hypot(sigma, _HIDDEN_OFFSET * R))
-        parts.append(replace(m, x=float(x), y=float(y), radius=float(R), mu_px=float(mu), anisotropy=1.0,
-                             sigma=sigma, flags=sorted(set(m.flags) | {"overlap"}), pair=bool(d > 1.6)))
+        parts.append(replace(w, x=float(x), y=float(y), radius=float(R), mu_px=float(mu), anisotropy=1.0,
+                             sigma=sigma, flags=sorted(set(w.flags) | {"overlap"}), pair=bool(d > 1.6)))
     return parts
 
 
