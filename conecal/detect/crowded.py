@@ -25,7 +25,7 @@ from .edge import CONE_OFFSET_PX, beside_edge
 from .rod import on_rods, rod_like, run_on
 from .overlap import components, fit_group, group_box, groups_of, joint_sigma, neighbours, render_box
 from .size import like_neighbours, nearest_shadows
-from .pairs import elongation_bound, fit_covered, hidden_pairs, is_pair, unsplit_pair
+from .pairs import elongation_bound, fit_covered, fit_lost, hidden_pairs, is_pair, unsplit_pair
 from .split import peaks_in, split
 
 # A joint model's centre that no centroid confirms (a seed, a split part, or a
@@ -93,6 +93,10 @@ def detect_frame(a: np.ndarray, opt: DetectOptions) -> list[Blob]:
         if (b2 is not b and b2.anisotropy <= opt.max_anisotropy
                 and all(np.hypot(b2.x - o.x, b2.y - o.y) > 0.8 * max(o.radius, b2.radius) for o in out)):
             out.append(b2)
+    # a misshapen blob holding two or three spheres' attenuation that nothing
+    # above measured (an 8-bit log display deepens overlaps beyond a sum of spheres)
+    lost = spoilt + [b for b in merged if not any(np.hypot(o.x - b.x, o.y - b.y) < b.radius for o in out)]
+    out += fit_lost(a, lost, out, opt, noise, invalid, peaks, R1, mu1, len(kept))
     # (a wire's or a screw's length that a seed or a split took for a sphere)
     out = [b for b, rod in zip(out, on_rods(a, out, opt.blur_px, invalid)) if not rod]
     out = [elongation_bound(b, opt.blur_px, opt.max_anisotropy) if "overlap" in b.flags else b for b in out]

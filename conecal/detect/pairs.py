@@ -4,9 +4,13 @@ Where shadows overlap by more than half a diameter they make one round or
 slightly elongated blob that the splits of :mod:`.split` do not separate. A
 blob that may hide a second sphere is said to (its σ covers it: an unsplit
 pair's elongation, a density beyond the frame's spheres', a stretch beyond
-any sphere's), and where one sphere's model misfits its disc and two or
-three fit it to the noise, each of the spheres is measured by that joint
-fit. Units: px, attenuation.
+any sphere's), and where two or three spheres fitted jointly leave far less
+misfit on their discs than one, with the markers pressed against it fitted
+again with them, each sphere is measured by that joint fit
+(:func:`fit_covered`). A blob that nothing measured is fitted the same way
+where no sum of spheres fits it to the noise (an 8-bit log display), with
+σ for the misfit left (:func:`two_on_top`'s ``lenient``). Units: px,
+attenuation.
 """
 
 from __future__ import annotations
@@ -18,6 +22,7 @@ import numpy as np
 from ..stats import mad_sigma
 from .frame import moment_trace
 from .overlap import disc_misfit, fit_group, group_box, joint_sigma, neighbours
+from .rod import run_on
 from .split import ADEQUATE
 
 # a lone sphere's anisotropy is 1.03 median, 1.10 at the 95th percentile (an
@@ -56,12 +61,25 @@ _TWO_MODEL = 0.02
 # sphere: pairs 0.2-0.5 of a diameter apart 1.7-12 on the helix (one sphere's
 # misfit there 1.4-7.5x that around it, on the tube's curved background)
 _ONE_MISFIT = 1.5
+# where no sum of spheres fits a blob to the noise (an 8-bit log display), a
+# third part must leave this many times less misfit on the discs than two
+# (a chain of three 4.7; a pair's overlap, deeper than a sum, soaked up by a
+# faint middle part 1.8-2.7: an independent renderer's ball phantom), and
+# each part this much of the frame's contrast (such middle parts 0.62-0.95,
+# a pair's part soaking up its partner 0.62; the right ones 0.83-1.2)
+_THIRD = 3.5
+_LENIENT_CONTRAST = 0.75
 # an overlap marker whose σ exceeds this fraction of its radius may hide a
 # second sphere beside it: fitted as two (a lone one's σ is 0.01-0.1 of it)
 _COVERED = 0.2
 # ... and the markers whose centres lie closer than this fraction of the
 # radii's sum to it are fitted again with it (a pair beside a third sphere)
 _PRESSED = 0.9
+# a blob nothing measured holding this many of the frame's spheres'
+# attenuation is fitted as two or three (:func:`fit_lost`), where the frame
+# has this many shadows measured alone to say what its spheres are
+_LOST_SPHERES = 1.4
+_LOST_PEERS = 5
 
 
 def fit_covered(a, out: list, opt, noise: float, invalid, peaks, R1: float, mu1) -> list:
@@ -87,6 +105,29 @@ def fit_covered(a, out: list, opt, noise: float, invalid, peaks, R1: float, mu1)
             res = [o for o in res if o is not b and all(o is not q for q in pressed)] + parts
             todo += [(p, False) for p in parts if p.pair and again]
     return res
+
+
+def fit_lost(a, lost: list, out: list, opt, noise: float, invalid, peaks, R1: float, mu1, peers: int) -> list:
+    """Markers for the blobs ``lost`` (misshapen or merged, which no window,
+    split or pair measured) that hold ``_LOST_SPHERES`` or more of the
+    frame's spheres' attenuation: the two or three spheres
+    :func:`two_on_top` fits where no sum fits to the noise (``lenient``),
+    with σ for the misfit that sum leaves, where no part falls on a marker
+    of ``out``. ``R1``, ``mu1``: the frame's sphere radius (px) and contrast,
+    measured on ``peers`` shadows alone: none unless ``_LOST_PEERS`` or more
+    (a real C-arm frame without the phantom took them from one blot, and a
+    small elongated blot on the spine was two such spheres)."""
+    new: list = []
+    if peers < _LOST_PEERS:
+        return new
+    for b in lost:
+        if mu1 is None or b.mu_px * b.radius**3 < _LOST_SPHERES * mu1 * R1**3:
+            continue
+        parts = two_on_top(a, b, R1, mu1, opt.blur_px, noise, opt.noise_kappa,
+                           neighbours(b, out + new + lost, peaks, opt), invalid, lenient=True)
+        if parts and all(np.hypot(p.x - o.x, p.y - o.y) > 0.8 * max(o.radius, p.radius) for p in parts for o in out + new):
+            new += parts
+    return new
 
 
 def _moments(m, blur: float) -> tuple[float, float]:
@@ -197,7 +238,7 @@ def hidden_pairs(a: np.ndarray, blobs: list, blur: float) -> list:
 
 
 def two_on_top(a: np.ndarray, m, R1: float, mu1, blur: float, noise: float, kappa: float, mask_out, invalid,
-               pressed=()):
+               pressed=(), lenient: bool = False):
     """Blob ``m``, whose σ covers a second sphere nearly on top (``m.pair``) or
     beside it (an elongation beyond any sphere's), as two spheres, else three:
     fitted jointly, started evenly along four directions through its centre
@@ -216,7 +257,12 @@ def two_on_top(a: np.ndarray, m, R1: float, mu1, blur: float, noise: float, kapp
     hidden in it, flagged a pair, σ at least ``_HIDDEN_OFFSET`` of its
     radius). A lone sphere on a curved background gives parts on top of each
     other, or one of a few percent of its contrast soaking up the
-    background: both refused."""
+    background: both refused. ``lenient``: for a blob nothing else measured,
+    where no sum of spheres may fit (an 8-bit log display deepens overlaps):
+    the parts need not fit to the noise, but each holds ``_LENIENT_CONTRAST``
+    of the frame's contrast, three replace two only with ``_THIRD`` times less
+    misfit, and σ grows with the square root of the misfit on the discs over
+    that around them (everywhere, as the model's error)."""
     if mu1 is None or not np.isfinite(m.sigma):
         return None
     rest = np.array([[o.x, o.y, o.radius, o.mu_px] for o in pressed]).reshape(-1, 4)
@@ -227,6 +273,7 @@ def two_on_top(a: np.ndarray, m, R1: float, mu1, blur: float, noise: float, kapp
         return None
     on1 = disc_misfit(a, one, blur, noise, mask_out, invalid)[0]
     major, minor = _moments(m, blur)
+    found = None
     for k, spread in ((2, 1.0), (3, 1.5)):
         # k spheres evenly along a line show major - minor = spread * (their spacing / 2)^2
         h = max(np.sqrt(max(major - minor, 0.0) / spread), 0.3 * m.radius)
@@ -237,17 +284,22 @@ def two_on_top(a: np.ndarray, m, R1: float, mu1, blur: float, noise: float, kapp
             fit = fit_group(a, np.vstack([start, rest]), blur, noise, mask_out, invalid, box=one[0], quadratic=True)
             if fit is not None and (best is None or fit[4] < best[4]):
                 best = fit
-        parts = _on_top_parts(a, [m] * k + list(pressed), best, one[4] if not len(rest) else None, on1, R1, mu1,
-                              blur, noise, kappa, mask_out, invalid)
-        if parts is not None:
-            return parts
-    return None
+        got = _on_top_parts(a, [m] * k + list(pressed), best, one[4] if not len(rest) else None, on1, R1, mu1,
+                            blur, noise, kappa, mask_out, invalid, lenient)
+        # (two that fit to the noise are the answer; where no sum of spheres
+        # does, three only if they leave _THIRD times less misfit than two)
+        if got is not None and (found is None or got[1] * _THIRD <= found[1]):
+            found = got
+        if found is not None and not lenient:
+            break
+    return None if found is None else found[0]
 
 
 def _on_top_parts(a, was: list, fit, chi2_one, on_one: float, R1: float, mu1: float, blur, noise, kappa, mask_out,
-                  invalid):
+                  invalid, lenient: bool = False):
     """:func:`two_on_top`'s parts from joint ``fit`` (each part from the
-    marker ``was`` it stands for), or None when they fail its tests;
+    marker ``was`` it stands for) and their misfit on the discs, or None
+    when they fail its tests;
     ``chi2_one``, ``on_one``: the one-sphere fit's chi-square (None when
     markers were pressed against it) and misfit on the discs."""
     if fit is None:
@@ -255,21 +307,38 @@ def _on_top_parts(a, was: list, fit, chi2_one, on_one: float, R1: float, mu1: fl
     _, sph, sig, _, chi2, _ = fit
     dense = sph[:, 3] / mu1
     gaps = np.hypot(sph[:, None, 0] - sph[None, :, 0], sph[:, None, 1] - sph[None, :, 1])
-    if (np.any((sph[:, 2] < 0.6 * R1) | (sph[:, 2] > 1.6 * R1)) or np.any((dense < 0.6) | (dense > 2.6))
+    if (np.any((sph[:, 2] < 0.6 * R1) | (sph[:, 2] > 1.6 * R1))
+            or np.any((dense < (_LENIENT_CONTRAST if lenient else 0.6)) | (dense > 2.6))
             or np.sum(dense > 1.6) > 1 or np.min(gaps + np.eye(len(sph)) * 1e9) < _TWO_APART * R1
             or (chi2_one is not None and chi2 > _TWO_GAIN * chi2_one)):
         return None
     on, off = disc_misfit(a, fit, blur, noise, mask_out, invalid)
-    if on > max(ADEQUATE, off) or on * _ONE_MISFIT > on_one:
+    if (on > max(ADEQUATE, off) and not lenient) or on * _ONE_MISFIT > on_one or _rod_part(a, sph, blur, invalid):
         return None
+    # (the model's error grows with the misfit it leaves on the discs beyond that around them)
+    misfit = max(on / max(off if np.isfinite(off) else 0.0, 1.0), 1.0)
     parts = []
     for (x, y, R, mu), s, d, w in zip(sph, sig, dense, was):
-        sigma = float(np.hypot(joint_sigma(s, kappa), _TWO_MODEL * R))
+        sigma = float(np.hypot(joint_sigma(s, kappa), _TWO_MODEL * R * np.sqrt(misfit)))
         if d > 1.6:
             sigma = float(np.hypot(sigma, _HIDDEN_OFFSET * R))
         parts.append(replace(w, x=float(x), y=float(y), radius=float(R), mu_px=float(mu), anisotropy=1.0,
                              sigma=sigma, flags=sorted(set(w.flags) | {"overlap"}), pair=bool(d > 1.6)))
-    return parts
+    return parts, on
+
+
+def _rod_part(a: np.ndarray, sph: np.ndarray, blur: float, invalid) -> bool:
+    """Whether joint parts ``sph`` (k, 4) lie along a rod: the shadow runs
+    on past both ends of an outer part of their line (the first or last
+    along it), at that part's level (:meth:`conecal.detect.rod.Run.runs_on`). A sphere lying on a wire,
+    fitted with the wire's stretch beside it, gave parts of the frame's size
+    and contrast along the wire (an independent renderer's ball phantom with
+    wires); spheres overlapping, in a pair or a chain, end."""
+    c = sph[:, :2].mean(axis=0)
+    u = np.linalg.svd(sph[:, :2] - c)[2][0]
+    t = (sph[:, :2] - c) @ u
+    # (along its own best direction: a sphere lying on the wire pulls the parts' line off it by 15 degrees)
+    return any(run_on(a, sph[i:i + 1], blur, invalid).runs_on() for i in {int(np.argmin(t)), int(np.argmax(t))})
 
 
 def _ring_level(a: np.ndarray, b, blobs: list, blur: float) -> float:

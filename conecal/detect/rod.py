@@ -48,7 +48,12 @@ class Run(NamedTuple):
 
     def rod(self) -> bool:
         """Whether the shadow runs on as a rod's: on and flat."""
-        return self.ratio >= _RUNS_ON and self.ripple <= _FLAT
+        return self.runs_on() and self.ripple <= _FLAT
+
+    def runs_on(self) -> bool:
+        """Whether the shadow runs on past both ends (flat or not: a sphere
+        may lie on the rod)."""
+        return self.ratio >= _RUNS_ON
 
 
 _NONE = Run(0.0, np.inf, np.array([1.0, 0.0]), [], 0.0)
