@@ -9,7 +9,9 @@ peak that no window could measure by the joint model alone. Lengths of a
 wire or a screw taken for spheres are dropped (:mod:`.rod`). A shadow
 flagged clutter is measured again with the background across an edge
 beside it (a plate's step, a holder's wall) fitted and removed
-(:mod:`.edge`). Units: px, attenuation.
+(:mod:`.edge`). A marker whose σ covers a second sphere nearly on top, and
+a blob of several spheres that nothing measured, are fitted as two or
+three (:mod:`.pairs`). Units: px, attenuation.
 """
 
 from __future__ import annotations
@@ -111,7 +113,7 @@ def detect_frame(a: np.ndarray, opt: DetectOptions) -> list[Blob]:
             one.append(b)
     out = [b for b in out if any(b is o for o in one)]
     # a marker whose σ covers a second sphere (on top of it, or beside it in an
-    # elongated shadow) is fitted as two, where two explain it
+    # elongated shadow) is fitted as two or three, where they explain it
     out = fit_covered(a, out, opt, noise, invalid, peaks, R1, mu1)
     # a shadow that stands apart: its centre from its fitted model, 2-3x surer than its centroid (.centre)
     return [model_centre(a, b, opt, noise, invalid, neighbours(b, out, peaks, opt), (R1, mu1)) for b in out]
