@@ -9,7 +9,7 @@ misfit on their discs than one, with the markers pressed against it fitted
 again with them, each sphere is measured by that joint fit
 (:func:`fit_covered`). A blob that nothing measured is fitted the same way
 where no sum of spheres fits it to the noise (an 8-bit log display), with
-σ for the misfit left (:func:`two_on_top`'s ``lenient``). Units: px,
+σ for the misfit left (:func:`on_top`'s ``lenient``). Units: px,
 attenuation.
 """
 
@@ -50,7 +50,7 @@ _HIDDEN_RARE = 0.15
 # a pair no split separates lies up to about this fraction of its radius
 # from their midpoint (0.15-0.33 on the independent helix)
 _HIDDEN_OFFSET = 0.25
-# two spheres fitted where one marker's σ covered them (:func:`two_on_top`):
+# two spheres fitted where one marker's σ covered them (:func:`on_top`):
 # at least this many of the frame's radii apart, explaining the blob this
 # much better than one sphere, and off by this fraction of their radius
 # beyond the joint fit's σ (the independent helix, seeds 2-3)
@@ -85,7 +85,7 @@ _LOST_PEERS = 5
 def fit_covered(a, out: list, opt, noise: float, invalid, peaks, R1: float, mu1) -> list:
     """``out`` with each marker whose σ covers a second sphere (``pair``, or
     an overlap's σ over ``_COVERED`` of its radius) replaced by the two or
-    three spheres :func:`two_on_top` fits, and the markers pressed against
+    three spheres :func:`on_top` fits, and the markers pressed against
     it (closer than ``_PRESSED`` of their radii's sum) by their refits, when
     no part falls on another marker; a part that holds two spheres' contrast
     is tried once more, beside its sibling. ``R1``, ``mu1``: the frame's
@@ -99,10 +99,10 @@ def fit_covered(a, out: list, opt, noise: float, invalid, peaks, R1: float, mu1)
         pressed = [o for o in res if o is not b and np.hypot(o.x - b.x, o.y - b.y) < _PRESSED * (o.radius + b.radius)]
         mask = [n for n in neighbours(b, res, peaks, opt)
                 if all(np.hypot(n[0] - o.x, n[1] - o.y) > 0.5 * o.radius for o in pressed)]
-        parts = two_on_top(a, b, R1, mu1, opt.blur_px, noise, opt.noise_kappa, mask, invalid, pressed)
-        if parts and all(np.hypot(p.x - o.x, p.y - o.y) > 0.5 * max(p.radius, o.radius)
-                         for p in parts for o in res if o is not b and all(o is not q for q in pressed)):
-            res = [o for o in res if o is not b and all(o is not q for q in pressed)] + parts
+        parts = on_top(a, b, R1, mu1, opt.blur_px, noise, opt.noise_kappa, mask, invalid, pressed)
+        rest = [o for o in res if o is not b and all(o is not q for q in pressed)]
+        if parts and _clear(parts, rest, 0.5):
+            res = rest + parts
             todo += [(p, False) for p in parts if p.pair and again]
     return res
 
@@ -111,23 +111,28 @@ def fit_lost(a, lost: list, out: list, opt, noise: float, invalid, peaks, R1: fl
     """Markers for the blobs ``lost`` (misshapen or merged, which no window,
     split or pair measured) that hold ``_LOST_SPHERES`` or more of the
     frame's spheres' attenuation: the two or three spheres
-    :func:`two_on_top` fits where no sum fits to the noise (``lenient``),
+    :func:`on_top` fits where no sum fits to the noise (``lenient``),
     with σ for the misfit that sum leaves, where no part falls on a marker
     of ``out``. ``R1``, ``mu1``: the frame's sphere radius (px) and contrast,
     measured on ``peers`` shadows alone: none unless ``_LOST_PEERS`` or more
     (a real C-arm frame without the phantom took them from one blot, and a
     small elongated blot on the spine was two such spheres)."""
     new: list = []
-    if peers < _LOST_PEERS:
+    if peers < _LOST_PEERS or mu1 is None:
         return new
     for b in lost:
-        if mu1 is None or b.mu_px * b.radius**3 < _LOST_SPHERES * mu1 * R1**3:
+        if b.mu_px * b.radius**3 < _LOST_SPHERES * mu1 * R1**3:
             continue
-        parts = two_on_top(a, b, R1, mu1, opt.blur_px, noise, opt.noise_kappa,
-                           neighbours(b, out + new + lost, peaks, opt), invalid, lenient=True)
-        if parts and all(np.hypot(p.x - o.x, p.y - o.y) > 0.8 * max(o.radius, p.radius) for p in parts for o in out + new):
+        parts = on_top(a, b, R1, mu1, opt.blur_px, noise, opt.noise_kappa, neighbours(b, out + new + lost, peaks, opt),
+                       invalid, lenient=True)
+        if parts and _clear(parts, out + new, 0.8):
             new += parts
     return new
+
+
+def _clear(parts: list, others: list, share: float) -> bool:
+    """Whether no part lies within ``share`` of the larger radius of any of ``others``."""
+    return all(np.hypot(p.x - o.x, p.y - o.y) > share * max(p.radius, o.radius) for p in parts for o in others)
 
 
 def _moments(m, blur: float) -> tuple[float, float]:
@@ -237,7 +242,7 @@ def hidden_pairs(a: np.ndarray, blobs: list, blur: float) -> list:
     return out
 
 
-def two_on_top(a: np.ndarray, m, R1: float, mu1, blur: float, noise: float, kappa: float, mask_out, invalid,
+def on_top(a: np.ndarray, m, R1: float, mu1, blur: float, noise: float, kappa: float, mask_out, invalid,
                pressed=(), lenient: bool = False):
     """Blob ``m``, whose σ covers a second sphere nearly on top (``m.pair``) or
     beside it (an elongation beyond any sphere's), as two spheres, else three:
@@ -274,12 +279,15 @@ def two_on_top(a: np.ndarray, m, R1: float, mu1, blur: float, noise: float, kapp
     on1 = disc_misfit(a, one, blur, noise, mask_out, invalid)[0]
     major, minor = _moments(m, blur)
     found = None
+    # k parts started evenly along a line at the spacing the elongation shows:
+    # exact for two (major - minor = (spacing / 2)^2); three start 6 % closer
+    # than three spheres evenly spaced would show (spacing^2 = 1.5 (major - minor))
     for k, spread in ((2, 1.0), (3, 1.5)):
-        # k spheres evenly along a line show major - minor = spread * (their spacing / 2)^2
         h = max(np.sqrt(max(major - minor, 0.0) / spread), 0.3 * m.radius)
+        spacing = 2 * h / np.sqrt(k - 1)
         best = None
         for t in np.arange(4) * np.pi / 4:
-            off = (np.arange(k) - (k - 1) / 2) * (2 * h if k == 2 else h * 2 / np.sqrt(2))
+            off = (np.arange(k) - (k - 1) / 2) * spacing
             start = np.c_[m.x + off * np.cos(t), m.y + off * np.sin(t), np.full(k, 0.85 * m.radius), np.full(k, mu1)]
             fit = fit_group(a, np.vstack([start, rest]), blur, noise, mask_out, invalid, box=one[0], quadratic=True)
             if fit is not None and (best is None or fit[4] < best[4]):
@@ -297,7 +305,7 @@ def two_on_top(a: np.ndarray, m, R1: float, mu1, blur: float, noise: float, kapp
 
 def _on_top_parts(a, was: list, fit, chi2_one, on_one: float, R1: float, mu1: float, blur, noise, kappa, mask_out,
                   invalid, lenient: bool = False):
-    """:func:`two_on_top`'s parts from joint ``fit`` (each part from the
+    """:func:`on_top`'s parts from joint ``fit`` (each part from the
     marker ``was`` it stands for) and their misfit on the discs, or None
     when they fail its tests;
     ``chi2_one``, ``on_one``: the one-sphere fit's chi-square (None when
