@@ -35,7 +35,7 @@ import numpy as np
 
 from . import kernels
 from .chain import anisotropy, chain_like, rough_blob
-from .noise import noise_pixel
+from .noise import noise_pixel, ring_mask, ring_noise
 from .peaks import candidates, invalid_mask, small_frame
 
 
@@ -74,6 +74,10 @@ class DetectOptions:
     # units) of the frame ``pixel_noise`` was measured on: a frame noisier than
     # that by 30 % measures its own pixel noise (0: never)
     noise_reference: float = 0.0
+    # neighbour-difference noise (``noise_small``, full resolution) of the
+    # frame ``pixel_noise`` was measured on; with it a background ring's own
+    # neighbour differences give the pixel noise there (0: not used)
+    white_noise: float = 0.0
     # touching shadows fitted together, merged blobs split, a straight
     # background step beside a shadow removed (conecal.detect.crowded)
     joint_overlaps: bool = True
@@ -103,6 +107,10 @@ class Blob:
     snr: float
     profile_misfit: float = 0.0   # |b - best chord profile| / |b| in the window
     pair: bool = False            # sigma covers a second sphere nearly on top (an unsplit or hidden pair)
+    # the background under it (attenuation) and its slope (attenuation/px), from conecal.detect.gain
+    bg: float | None = None
+    bg_gx: float | None = None
+    bg_gy: float | None = None
 
 
 def _rough_blob(a: np.ndarray, cx: float, cy: float, r: float, blur: float, noise: float, opt: DetectOptions):
@@ -191,7 +199,7 @@ def refine(a: np.ndarray, x0: float, y0: float, r0: float, opt: DetectOptions, o
             fitted_at = (x, y, r, bounds)
             ox = np.array([o[0] - c0 for o in others]) if others else _EMPTY
             oy = np.array([o[1] - q0 for o in others]) if others else _EMPTY
-            orad = np.array([1.15 * o[2] + 3 * opt.blur_px + 2 for o in others]) if others else _EMPTY
+            orad = np.array([k[2] for k in keep_out(others, 0, 0, opt)]) if others else _EMPTY
             coef, quad, sig_bg, n_in, s_ring, hidden = kernels.fit_background(
                 roi, inv, cx, cy, r_in, r_out, rw, ox, oy, orad, 150,
                 _F_QUAD * opt.noise_kappa if plane_test else 0.0)
@@ -268,8 +276,15 @@ def refine(a: np.ndarray, x0: float, y0: float, r0: float, opt: DetectOptions, o
     clutter = noise > 0 and sig_bg > 1.5 * noise + 1e-6
     if clutter:
         # structure the background model cannot follow: its excess taken as a
-        # coherent error over half the window
-        sigma2 += (0.5 * np.sqrt(max(sig_bg**2 - noise**2, 0.0)) * abs_ex / V) ** 2
+        # coherent error over half the window. The excess is over the ring's
+        # own noise: the frame's is a median, and in attenuation a display
+        # image's noise differs 2-4x across the field (sigma was 2.3x the
+        # error on an intensifier's log window). (The flag stays the frame's
+        # test: detect's shape tests for a disturbed shadow hang on it.)
+        here = max(noise, ring_noise(roi, ring_mask(roi.shape, cx, cy, r_in, r_out, keep_out(others, c0, q0, opt),
+                                                    inv)) * opt.pixel_noise / opt.white_noise) \
+            if opt.white_noise > 0 else noise
+        sigma2 += (0.5 * np.sqrt(max(sig_bg**2 - here**2, 0.0)) * abs_ex / V) ** 2
     # The centroid of the shadow's core (rho < 0.75 r) must agree with the whole
     # window's: a faint blob, ghost or rod near the edge pulls them apart.
     core = kernels.window_moments(roi, coef, fx, fy, x - c0, y - q0, 0.75 * r)
@@ -320,6 +335,13 @@ def refine(a: np.ndarray, x0: float, y0: float, r0: float, opt: DetectOptions, o
         flags.append("clutter")
     return Blob(float(x), float(y), r, float(np.sqrt(sigma2)), float(mu_px), peak, aniso, flags,
                 float(peak / sig_bg), misfit)
+
+
+def keep_out(others, c0: int, q0: int, opt: DetectOptions) -> list:
+    """(x, y, radius) in a box at column c0, row q0 of the discs that the
+    shadows ``others`` ((x, y, r) in the frame, px) cover, blur and a
+    margin included: what a background ring leaves out."""
+    return [(ox - c0, oy - q0, 1.15 * r + 3 * opt.blur_px + 2) for ox, oy, r in others]
 
 
 def window_radius(r, blur: float):

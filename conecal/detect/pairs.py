@@ -21,6 +21,7 @@ import numpy as np
 
 from ..stats import mad_sigma
 from .frame import moment_trace
+from .noise import ring_mask
 from .overlap import disc_misfit, fit_group, group_box, joint_sigma, neighbours
 from .rod import run_on
 from .split import ADEQUATE
@@ -360,12 +361,8 @@ def _ring_level(a: np.ndarray, b, blobs: list, blur: float) -> float:
     q0, q1 = max(int(b.y - r1), 0), min(int(b.y + r1) + 2, rows)
     if c1 <= c0 or q1 <= q0:
         return float("nan")
-    yy, xx = np.mgrid[q0:q1, c0:c1]
-    d2 = (xx - b.x) ** 2 + (yy - b.y) ** 2
-    ring = (d2 >= r0 * r0) & (d2 <= r1 * r1)
-    for o in blobs:
-        if o is not b and abs(o.x - b.x) < r1 + o.radius + 3 and abs(o.y - b.y) < r1 + o.radius + 3:
-            ring &= (xx - o.x) ** 2 + (yy - o.y) ** 2 > (o.radius + 2 * blur + 1) ** 2
+    ring = ring_mask((q1 - q0, c1 - c0), b.x - c0, b.y - q0, r0, r1,
+                     [(o.x - c0, o.y - q0, o.radius + 2 * blur + 1) for o in blobs if o is not b])
     v = a[q0:q1, c0:c1][ring]
     v = v[np.isfinite(v)]
     return float(np.median(v)) if v.size >= 8 else float("nan")

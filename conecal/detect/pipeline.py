@@ -15,6 +15,7 @@ from ..scan import Scan
 from . import kernels
 from .crowded import detect_frame
 from .frame import DetectOptions, NonFiniteFrame
+from .gain import with_gain_sigma, with_background
 from .noise import noise_correlation, noise_pixel, noise_small
 from .peaks import small_frame
 from .size import MIN_SHADOWS, measured_size
@@ -135,7 +136,7 @@ def scan_options(scan: Scan, opt: DetectOptions) -> DetectOptions:
         # few px, which neighbour differences miss (then every marker looked
         # like clutter)
         opt = replace(opt, pixel_noise=noise_pixel(mid), noise_kappa=noise_correlation(mid),
-                      noise_reference=noise_small(small_frame(mid, opt)) * opt.factor)
+                      noise_reference=noise_small(small_frame(mid, opt)) * opt.factor, white_noise=noise_small(mid))
     if opt.shadow_px and not opt.size_scale:
         # the middle frame's shadows, and a quarter's either side of it while too few
         blobs = detect_frame(mid, opt)
@@ -175,7 +176,7 @@ def _measure_frames(scan, opt, frames_idx, workers, lag, progress):
         if lag and k in previous:
             a = lag_corrected(a, scan.stack.read(previous[k], check=False), lag)
         try:
-            return detect_frame(a, opt)
+            return with_background(a, detect_frame(a, opt), opt)
         except NonFiniteFrame:
             scan.stack.check_finite(k, a)  # raises InputError naming the pixel
             raise
@@ -266,6 +267,7 @@ def assemble(scan: Scan, opt: DetectOptions, frames_idx: list[int], results: lis
     filter, identities across frames, frames in log order."""
     ds = (scan.config.markers.diameters or (scan.config.markers.diameter,)) if scan.config.markers else (1.0,)
     results, ref = scan_filter(results, opt, min(ds) / max(ds))
+    results, gain = with_gain_sigma(results, opt)
     robot = scan.config.motion in ("robot", "free")
     # A robot re-places the holder with mm-level jumps between frames, and free
     # poses are unrelated, so image tracks are not identities there: fit-pose
@@ -291,9 +293,9 @@ def assemble(scan: Scan, opt: DetectOptions, frames_idx: list[int], results: lis
             "detector": {"shape": [rows, cols]},
             "options": {"diameter_px": list(opt.diameter_px), "threshold": opt.threshold, "blur_px": opt.blur_px,
                         "pixel_noise": round(opt.pixel_noise, 8), "noise_kappa": round(opt.noise_kappa, 4),
-                        "noise_reference": round(opt.noise_reference, 8),
+                        "noise_reference": round(opt.noise_reference, 8), "white_noise": round(opt.white_noise, 8),
                         "max_anisotropy": opt.max_anisotropy, "min_relative_contrast": opt.min_relative_contrast,
                         "size_scale": round(opt.size_scale, 4)},
-            "reference_mu_px": round(ref, 6),
+            "reference_mu_px": round(ref, 6), "contrast_gain": gain.document(),
             "identities": "phantom ids are assigned by fit-pose" if robot else "tracked across frames",
             "n_ids": 0 if robot else len(spans), "frames": frames}
