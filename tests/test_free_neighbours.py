@@ -222,7 +222,7 @@ def test_a_winner_that_leaves_detections_unexplained_waits_for_the_search_near_i
     dets, usable, orders = {}, [], {}
     for k, (R, t) in enumerate(poses):
         order = orders[k] = rng.permutation(len(points))[:23]
-        dets[k] = (CAM.project(points[order] @ R.T + t) + rng.normal(0, 0.03, (23, 2)),)
+        dets[k] = (CAM.project(points[order] @ R.T + t) + rng.normal(0, 0.03, (23, 2)), np.full(23, 0.03))
         if k != 4:
             best = Candidate(np.arange(23), order, R, t, 0.04)
             usable.append({"frame": k, "slot": len(usable), "pairs": (np.arange(23), order), "status": OK,
@@ -239,6 +239,22 @@ def test_a_winner_that_leaves_detections_unexplained_waits_for_the_search_near_i
     assert won == [fr] and lost == []
     c = fr["search"].best
     assert len(c.sph) >= 22 and np.array_equal(c.sph, orders[4][c.det])   # every detection named as made
+
+
+def test_a_detection_too_uncertain_to_name_a_sphere_is_not_unexplained():
+    """Three detections left unexplained by a frame's identity send it to a
+    second look, unless their 3 sigma exceed the gate: markers over two
+    spheres nearly on top (sigma 1.5-1.9 px) cannot say which sphere, if
+    any, they are."""
+    from conecal.calib.second_look import _unexplained
+
+    explained = np.arange(21)
+    sure = np.r_[np.full(21, 0.04), 0.05, 0.04, 0.37]
+    vague = np.r_[np.full(21, 0.04), 1.5, 1.9, 0.37]
+    assert _unexplained(sure, explained, 1.4)
+    assert not _unexplained(vague, explained, 1.4)
+    assert _unexplained(vague, explained, 6.0)      # a wide gate: their place says enough
+    assert not _unexplained(sure, np.arange(22), 1.4)   # two left: too few
 
 
 def test_a_rival_doubts_an_identification_by_count_or_by_a_clearly_better_fit():
