@@ -13,12 +13,16 @@ eta M2 g, M2 the shadow's second moment per axis (px^2; 0.2 R^2 + blur^2 +
 1/12 for a chord profile): 0.02-0.1 px on an intensifier's display image,
 beside noise sigmas of 0.02-0.03 px.
 
-``eta`` = d ln(mu_px) / d(background attenuation) is measured per scan
-from the markers measured alone, relative to their frame's (a display
-window changes from frame to frame; a phantom's larger spheres are a group
-of their own). The shift is not corrected: a slope fitted across a plate's
-edge or a hole is no gain's gradient, and moved centres there by 0.5 px.
-Each sigma takes it, (|eta| + se) M2 |g|, as an uncertainty.
+``eta`` = d ln(contrast) / d(background attenuation) is measured per scan
+from the markers measured alone, the contrast being the central chord
+(mu_px R: free of the magnification, which across a tilted plate changes
+with the background too), relative to their frame's spheres of the same
+size (a display window changes from frame to frame). The shift is not
+corrected: a slope fitted across a plate's edge or a hole is no gain's
+gradient, and a correction moved centres there by 0.5 px and more. Each
+sigma takes it, (|eta| + se) M2 |g|, as an uncertainty; eta from the
+contrast is the deep core's, which a display's curve bends more than the
+rim the centroid weighs, so the term is an upper bound (up to 2x).
 """
 
 from __future__ import annotations
