@@ -23,7 +23,7 @@ from ..stats import mad_sigma
 from .frame import moment_trace
 from .noise import ring_mask
 from .overlap import disc_misfit, fit_group, group_box, joint_sigma, neighbours
-from .rod import run_on
+from .rod import line_of, run_on
 from .split import ADEQUATE
 
 # a lone sphere's anisotropy is 1.03 median, 1.10 at the 95th percentile (an
@@ -343,8 +343,7 @@ def _rod_part(a: np.ndarray, sph: np.ndarray, blur: float, invalid) -> bool:
     fitted with the wire's stretch beside it, gave parts of the frame's size
     and contrast along the wire (an independent renderer's ball phantom with
     wires); spheres overlapping, in a pair or a chain, end."""
-    c = sph[:, :2].mean(axis=0)
-    u = np.linalg.svd(sph[:, :2] - c)[2][0]
+    c, u = line_of(sph[:, :2])
     t = (sph[:, :2] - c) @ u
     # (along its own best direction: a sphere lying on the wire pulls the parts' line off it by 15 degrees)
     return any(run_on(a, sph[i:i + 1], blur, invalid).runs_on() for i in {int(np.argmin(t)), int(np.argmax(t))})

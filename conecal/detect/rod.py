@@ -75,7 +75,7 @@ def run_on(a: np.ndarray, spheres: np.ndarray, blur: float, invalid=None, u=None
     xy, R = sph[:, :2], float(np.median(sph[:, 2]))
     c = xy.mean(axis=0)
     if u is None and len(sph) >= 2:
-        u = np.linalg.svd(xy - c)[2][0]
+        u = line_of(xy)[1]
     dirs = [np.asarray(u, float)] if u is not None else \
         [np.array([np.cos(th), np.sin(th)]) for th in np.arange(12) * np.pi / 12]
     gap = R + 2.5 * blur + 1
@@ -137,6 +137,13 @@ def _runs_into(ends: list, others) -> list[int]:
             if any(np.any(np.hypot(px - ox, py - oy) < r + 2) for px, py in ends)]
 
 
+def line_of(xy: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The centroid (px) of points ``xy`` (k, 2) and the unit direction of
+    their best line through it (the first right singular vector)."""
+    c = xy.mean(axis=0)
+    return c, np.linalg.svd(xy - c)[2][0]
+
+
 def rod_like(a: np.ndarray, spheres: np.ndarray, blur: float, others=(), invalid=None) -> bool:
     """Whether split parts ``spheres`` (k >= 2 rows x, y, R px, mu) are
     lengths of a rod: on one line (within ``_ON_LINE`` radii), along which
@@ -145,8 +152,7 @@ def rod_like(a: np.ndarray, spheres: np.ndarray, blur: float, others=(), invalid
     sph = np.asarray(spheres, float).reshape(-1, 4)
     if len(sph) < 2:
         return False
-    c = sph[:, :2].mean(axis=0)
-    u = np.linalg.svd(sph[:, :2] - c)[2][0]
+    c, u = line_of(sph[:, :2])
     if np.max(np.abs((sph[:, :2] - c) @ np.array([-u[1], u[0]]))) > _ON_LINE * float(np.median(sph[:, 2])):
         return False
     run = run_on(a, sph, blur, invalid, u, others)
