@@ -1,25 +1,23 @@
 """A shadow whose contrast depends on the background under it (a display
-image stored as transmission): the ring's own noise, the scan's gain eta,
-and sigmas that cover the centroid shift a background slope then causes."""
+image stored as transmission): the scan's gain eta, and sigmas that cover
+the centroid shift a background slope then causes."""
 
 import numpy as np
 
 from conecal.detect.crowded import detect_frame
 from conecal.detect.frame import Blob, DetectOptions
 from conecal.detect.gain import measure_gain, with_background, with_gain_sigma
-from conecal.detect.noise import noise_correlation, noise_pixel, noise_small, ring_mask, ring_noise
+from conecal.detect.noise import noise_correlation, noise_pixel, ring_mask
 
 
-def test_ring_noise_sees_the_white_noise_not_a_slope_or_an_edge():
-    rng = np.random.default_rng(3)
-    yy, xx = np.mgrid[0:41, 0:41]
-    roi = 0.01 * xx + 0.02 * rng.standard_normal((41, 41))
-    roi[:, 27:] += 0.3          # a plate's edge crossing the ring
-    ring = ring_mask(roi.shape, 20.0, 20.0, 10.0, 15.0)
-    assert abs(ring_noise(roi, ring) / 0.02 - 1) < 0.15
-    # a neighbour's disc is left out of the ring
-    away = ring_mask(roi.shape, 20.0, 20.0, 10.0, 15.0, [(32.0, 20.0, 4.0)])
-    assert away.sum() < ring.sum() and not away[20, 32]
+def test_a_ring_leaves_out_the_other_shadows_and_invalid_pixels():
+    ring = ring_mask((41, 41), 20.0, 20.0, 10.0, 15.0)
+    r = np.hypot(*(np.mgrid[0:41, 0:41] - 20.0))
+    assert np.array_equal(ring, (r >= 10) & (r <= 15))
+    bad = np.zeros((41, 41), bool)
+    bad[:, :8] = True
+    away = ring_mask((41, 41), 20.0, 20.0, 10.0, 15.0, [(32.0, 20.0, 4.0)], bad)
+    assert away.sum() < ring.sum() and not away[20, 32] and not away[20, 6] and away[20, 9]
 
 
 def _blobs(rng, eta, n_frames=3, n=20, magnified=False):
@@ -85,7 +83,7 @@ def test_sigma_covers_the_shift_a_display_image_gives_a_shadow_on_a_slope():
         truth.append(c)
     a = frames[0]
     opt = DetectOptions(diameter_px=(12.0, 20.0), blur_px=0.8, pixel_noise=noise_pixel(a),
-                        noise_kappa=noise_correlation(a), white_noise=noise_small(a))
+                        noise_kappa=noise_correlation(a))
     found = [with_background(f, detect_frame(f, opt), opt) for f in frames]
     covered, gain = with_gain_sigma(found, opt)
     assert gain.significant and gain.eta > 0.5

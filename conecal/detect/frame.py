@@ -35,7 +35,7 @@ import numpy as np
 
 from . import kernels
 from .chain import anisotropy, chain_like, rough_blob
-from .noise import noise_pixel, ring_mask, ring_noise
+from .noise import noise_pixel
 from .peaks import candidates, invalid_mask, small_frame
 
 
@@ -74,10 +74,6 @@ class DetectOptions:
     # units) of the frame ``pixel_noise`` was measured on: a frame noisier than
     # that by 30 % measures its own pixel noise (0: never)
     noise_reference: float = 0.0
-    # neighbour-difference noise (``noise_small``, full resolution) of the
-    # frame ``pixel_noise`` was measured on; with it a background ring's own
-    # neighbour differences give the pixel noise there (0: not used)
-    white_noise: float = 0.0
     # touching shadows fitted together, merged blobs split, a straight
     # background step beside a shadow removed (conecal.detect.crowded)
     joint_overlaps: bool = True
@@ -276,15 +272,10 @@ def refine(a: np.ndarray, x0: float, y0: float, r0: float, opt: DetectOptions, o
     clutter = noise > 0 and sig_bg > 1.5 * noise + 1e-6
     if clutter:
         # structure the background model cannot follow: its excess taken as a
-        # coherent error over half the window. The excess is over the ring's
-        # own noise: the frame's is a median, and in attenuation a display
-        # image's noise differs 2-4x across the field (sigma was 2.3x the
-        # error on an intensifier's log window). (The flag stays the frame's
-        # test: detect's shape tests for a disturbed shadow hang on it.)
-        here = max(noise, ring_noise(roi, ring_mask(roi.shape, cx, cy, r_in, r_out, keep_out(others, c0, q0, opt),
-                                                    inv)) * opt.pixel_noise / opt.white_noise) \
-            if opt.white_noise > 0 else noise
-        sigma2 += (0.5 * np.sqrt(max(sig_bg**2 - here**2, 0.0)) * abs_ex / V) ** 2
+        # coherent error over half the window (over the frame's noise, not the
+        # ring's own: at a real plate's edge the ring's read 2x the frame's and
+        # left sigma 4x short of what fit-pose's residuals said)
+        sigma2 += (0.5 * np.sqrt(max(sig_bg**2 - noise**2, 0.0)) * abs_ex / V) ** 2
     # The centroid of the shadow's core (rho < 0.75 r) must agree with the whole
     # window's: a faint blob, ghost or rod near the edge pulls them apart.
     core = kernels.window_moments(roi, coef, fx, fy, x - c0, y - q0, 0.75 * r)

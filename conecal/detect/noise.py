@@ -111,14 +111,3 @@ def ring_mask(shape: tuple[int, int], x: float, y: float, r0: float, r1: float, 
         ring &= ~invalid
     return ring
 
-
-def ring_noise(roi: np.ndarray, ring: np.ndarray) -> float:
-    """White noise sigma (attenuation) of the pixels ``ring`` of ``roi`` from
-    neighbour differences within it, each direction centred on its own
-    median (a background's slope is not noise) and robust (an edge's few
-    steps do not count); 0 when fewer than 40 pairs."""
-    dh = (roi[:, 1:] - roi[:, :-1])[ring[:, 1:] & ring[:, :-1]]
-    dv = (roi[1:, :] - roi[:-1, :])[ring[1:, :] & ring[:-1, :]]
-    if len(dh) + len(dv) < 40:
-        return 0.0
-    return float(difference_sigma(np.concatenate([d - np.median(d) for d in (dh, dv) if len(d)]), centre=False))

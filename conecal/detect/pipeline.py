@@ -136,7 +136,7 @@ def scan_options(scan: Scan, opt: DetectOptions) -> DetectOptions:
         # few px, which neighbour differences miss (then every marker looked
         # like clutter)
         opt = replace(opt, pixel_noise=noise_pixel(mid), noise_kappa=noise_correlation(mid),
-                      noise_reference=noise_small(small_frame(mid, opt)) * opt.factor, white_noise=noise_small(mid))
+                      noise_reference=noise_small(small_frame(mid, opt)) * opt.factor)
     if opt.shadow_px and not opt.size_scale:
         # the middle frame's shadows, and a quarter's either side of it while too few
         blobs = detect_frame(mid, opt)
@@ -293,7 +293,7 @@ def assemble(scan: Scan, opt: DetectOptions, frames_idx: list[int], results: lis
             "detector": {"shape": [rows, cols]},
             "options": {"diameter_px": list(opt.diameter_px), "threshold": opt.threshold, "blur_px": opt.blur_px,
                         "pixel_noise": round(opt.pixel_noise, 8), "noise_kappa": round(opt.noise_kappa, 4),
-                        "noise_reference": round(opt.noise_reference, 8), "white_noise": round(opt.white_noise, 8),
+                        "noise_reference": round(opt.noise_reference, 8),
                         "max_anisotropy": opt.max_anisotropy, "min_relative_contrast": opt.min_relative_contrast,
                         "size_scale": round(opt.size_scale, 4)},
             "reference_mu_px": round(ref, 6), "contrast_gain": gain.document(),
