@@ -5,9 +5,9 @@ the centroid shift a background slope then causes."""
 import numpy as np
 
 from conecal.detect.crowded import detect_frame
-from conecal.detect.frame import Blob, DetectOptions
+from conecal.detect.frame import Blob, DetectOptions, ring_mask
 from conecal.detect.gain import measure_gain, with_background, with_gain_sigma
-from conecal.detect.noise import noise_correlation, noise_pixel, ring_mask
+from conecal.detect.noise import noise_correlation, noise_pixel
 
 
 def test_a_ring_leaves_out_the_other_shadows_and_invalid_pixels():

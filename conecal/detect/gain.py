@@ -32,8 +32,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from ..stats import mad_sigma
-from .frame import Blob, DetectOptions, keep_out, window_radius
-from .noise import ring_mask
+from .frame import Blob, DetectOptions, keep_out, ring_mask, window_radius
 
 _MIN_MARKERS = 30     # markers measured alone a scan needs before eta is trusted
 

@@ -94,20 +94,3 @@ def noise_pixel(img: np.ndarray, size: int = 7) -> float:
     a = np.ascontiguousarray(img[::2, ::2] if min(img.shape) > 256 else img, dtype=np.float32)
     d = (a - cv2.blur(a, (size, size), borderType=cv2.BORDER_REPLICATE)).ravel()
     return float(mad_sigma(d)) / np.sqrt(1 - 1 / size**2) + 1e-7
-
-
-def ring_mask(shape: tuple[int, int], x: float, y: float, r0: float, r1: float, keep_out=(),
-              invalid: np.ndarray | None = None) -> np.ndarray:
-    """The pixels of a box of ``shape`` (rows, cols) between r0 and r1 px of
-    (x, y) (box coordinates: column, row), without the discs ``keep_out``
-    ((x, y, radius) each: other shadows) and ``invalid`` pixels."""
-    yy, xx = np.mgrid[0:shape[0], 0:shape[1]]
-    d2 = (xx - x) ** 2 + (yy - y) ** 2
-    ring = (d2 >= r0 * r0) & (d2 <= r1 * r1)
-    for ox, oy, orad in keep_out:
-        if abs(ox - x) < r1 + orad and abs(oy - y) < r1 + orad:
-            ring &= (xx - ox) ** 2 + (yy - oy) ** 2 > orad * orad
-    if invalid is not None and invalid.shape == ring.shape:
-        ring &= ~invalid
-    return ring
-

@@ -20,8 +20,7 @@ from dataclasses import replace
 import numpy as np
 
 from ..stats import mad_sigma
-from .frame import moment_trace
-from .noise import ring_mask
+from .frame import moment_trace, ring_mask
 from .overlap import disc_misfit, fit_group, group_box, joint_sigma, neighbours
 from .rod import line_of, run_on
 from .split import ADEQUATE
@@ -244,7 +243,7 @@ def hidden_pairs(a: np.ndarray, blobs: list, blur: float) -> list:
 
 
 def on_top(a: np.ndarray, m, R1: float, mu1, blur: float, noise: float, kappa: float, mask_out, invalid,
-               pressed=(), lenient: bool = False):
+           pressed=(), lenient: bool = False):
     """Blob ``m``, whose σ covers a second sphere nearly on top (``m.pair``) or
     beside it (an elongation beyond any sphere's), as two spheres, else three:
     fitted jointly, started evenly along four directions through its centre
