@@ -89,6 +89,15 @@ def unseen_spheres(cam: Camera, shape: PhantomShape, R, t, sph, xy: np.ndarray |
     image has none). With the detections ``xy`` (n, 2) px, a sphere with one
     inside its predicted shadow is seen, only fitted beyond a tight gate (a
     distortion the model lacks), not missing."""
+    return shadow_tally(cam, shape, R, t, sph, None, xy)[1]
+
+
+def shadow_tally(cam: Camera, shape: PhantomShape, R, t, sph, det=None, xy: np.ndarray | None = None):
+    """(seen, missing) of the spheres no detection was assigned to: ``seen``
+    those with a detection no other sphere took (``det``: the assigned
+    detections' indices) inside their predicted shadow, ``missing`` those
+    put well inside the detector and clear of every other shadow with no
+    detection in it (see ``unseen_spheres``)."""
     pred = cam.project(shape.points @ R.T + t)
     rows, cols = cam.shape
     f = cam.focal_px.mean()
@@ -101,9 +110,15 @@ def unseen_spheres(cam: Camera, shape: PhantomShape, R, t, sph, xy: np.ndarray |
     clear = d.min(1) > 2 * margin if len(pred) > 1 else np.ones(len(pred), bool)
     found = np.zeros(len(pred), bool)
     found[np.asarray(sph, int)] = True
+    seen = 0
     if xy is not None and len(xy):
-        found |= np.linalg.norm(pred[:, None] - xy[None], axis=-1).min(1) <= margin / 2
-    return int(np.sum(inside & clear & ~found))
+        near = np.linalg.norm(pred[:, None] - xy[None], axis=-1) <= margin[:, None] / 2
+        if det is not None:
+            free = np.ones(len(xy), bool)
+            free[np.asarray(det, int)] = False
+            seen = int(np.sum(~found & clear & (near & free[None]).any(1)))
+        found |= near.any(1)
+    return seen, int(np.sum(inside & clear & ~found))
 
 
 def _tighten(cam: Camera, shape: PhantomShape, xy: np.ndarray, cands: list, floor_px: float) -> list:
@@ -172,9 +187,9 @@ def search_frame(cam: Camera, shape: PhantomShape, xy: np.ndarray, guess=None,
         twins, maps, rivals = _by_symmetry(shape, best, rivals)
         if twins:
             best = by_convention([best] + twins, shape, guess, opt)
-            convention = ("labelled by convention (phantom normal towards the detector, then the smallest turn) "
-                          "among poses its symmetry makes identical: "
-                          + "; ".join(sorted({symmetry_name(M, shape.basis) for M in maps})))
+            convention = _by_convention_sentence(shape, maps)
+    if rivals and shape.lattice is not None:
+        best, rivals, convention = _explains_most(cam, shape, xy, best, rivals, convention, guess, opt)
     if rivals and guess is not None:
         agree = [c for c in [best] + rivals if _agrees(c, guess, opt)]
         if len(agree) == 1:
@@ -185,6 +200,46 @@ def search_frame(cam: Camera, shape: PhantomShape, xy: np.ndarray, guess=None,
                                       f"(best {len(best.sph)} spheres at {best.rms_px:.2f} px; also {what})"),
                             best, rivals, convention)
     return SearchResult(OK, best, [], convention)
+
+
+def _explains_most(cam: Camera, shape: PhantomShape, xy: np.ndarray, best: Candidate, rivals: list,
+                   convention: str, guess, opt: SearchOptions):
+    """Tied labellings of a grid told apart by the detections they explain:
+    a sphere assigned, or one whose predicted shadow holds a detection no
+    other sphere took (that lattice site's sphere, moved beyond the gate by
+    the distortion the nominal camera lacks), less the spheres it puts
+    clear on the detector with nothing there. One pose (up to the
+    phantom's symmetry) explaining 2 or more than every other wins; else
+    the tie stands. Returns (best, rivals, convention).
+
+    (An independent renderer's 6x6 grid with a corner missing: the right
+    labelling lost a corner 4.5 px off and tied with two turns at 34
+    spheres, one of which put the missing corner on a detection and a
+    sphere where the image has none. Counted in the ranking itself, such
+    spheres let a 7x7 grid's labelling at 0.81 px beat ones at 0.23 px, and
+    a helix's turned labellings, whose spheres fall near the right ones'
+    shadows, outrank its right one: hence only between ties, only a grid's.)"""
+    cands = [best] + rivals
+    score = []
+    for c in cands:
+        seen, missing = shadow_tally(cam, shape, c.R, c.t, c.sph, c.det, xy)
+        score.append(len(c.sph) + seen - missing)
+    top = max(score)
+    lead = [c for c, v in zip(cands, score) if v == top]
+    rest = [v for v in score if v != top]
+    if not rest or top < max(rest) + 2:
+        return best, rivals, convention
+    twins, maps, others = _by_symmetry(shape, lead[0], lead[1:])
+    if others:
+        return best, rivals, convention
+    if twins:
+        return by_convention(lead, shape, guess, opt), [], _by_convention_sentence(shape, maps)
+    return lead[0], [], convention
+
+
+def _by_convention_sentence(shape: PhantomShape, maps: list) -> str:
+    return ("labelled by convention (phantom normal towards the detector, then the smallest turn) among poses "
+            "its symmetry makes identical: " + "; ".join(sorted({symmetry_name(M, shape.basis) for M in maps})))
 
 
 def by_convention(twins: list, shape: PhantomShape, guess=None, opt: SearchOptions = SearchOptions()) -> Candidate:
