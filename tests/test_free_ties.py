@@ -1,13 +1,20 @@
-"""Free poses: ties between labellings of a grid."""
+"""Free poses: ties between labellings of a grid, and a frame's own twist in the second look."""
 
 from __future__ import annotations
 
-import numpy as np
+from types import SimpleNamespace
 
+import numpy as np
+import pytest
+
+from conecal.calib.bundle import family_named
 from conecal.calib.camera import Camera
+from conecal.calib.candidate import Candidate
 from conecal.calib.phantom import describe_phantom
 from conecal.calib.search import search_frame
+from conecal.calib.second_look import _own_terms, _refit
 from conecal.geometry import ConeGeometry, rotvec_to_matrix
+from conecal.geometry.distortion import Distortion
 from conecal.simulate.carm import grid_phantom
 
 SHAPE = (512, 512)
@@ -42,3 +49,47 @@ def test_a_grid_corner_moved_beyond_the_gate_still_names_the_grid():
     # shadow, nothing tells the labellings apart
     xy[corner] += 40 * out / np.linalg.norm(out)
     assert not search_frame(cam, shape, xy).status.ok
+
+
+# a family with per-frame terms, and what a frame's own terms are against the bundle's median
+TWISTS = [("radial+S+tangential, S per frame", dict(s=12.0))]
+
+
+def _twisted_frame(family, own_terms):
+    cam = _camera()
+    shape = describe_phantom(grid_phantom(6, pitch=12.0, marked=True), np.arange(35))
+    R = rotvec_to_matrix(np.deg2rad([20.0, 5.0, -3.0]))
+    t = np.array([0.0, 4.0, 0.0])
+    ideal = cam.project(shape.points @ R.T + t)
+    shared = dict(k1=3.0, k2=0.5, p1=0.2, p2=-0.1)
+    median = Distortion.radial(SHAPE, centre=(260.0, 250.0), s=1.0, **shared)
+    own = Distortion.radial(SHAPE, centre=(260.0, 250.0), **own_terms, **shared)
+    bundle = SimpleNamespace(camera=cam, family=family_named(family), frame_distortion=lambda slot: median)
+    noise = np.random.default_rng(2).normal(0, 0.005, ideal.shape)
+    return cam, shape, R, t, ideal, own.distort(ideal) + noise, median, bundle
+
+
+@pytest.mark.parametrize("family,own_terms", TWISTS)
+def test_a_frame_outside_the_bundle_is_undistorted_with_its_own_twist(family, own_terms):
+    cam, shape, R, t, ideal, measured, median, bundle = _twisted_frame(family, own_terms)
+    ids = np.arange(len(ideal))
+    fit = _own_terms(bundle)(measured)
+    Rf, tf, xy = fit(rotvec_to_matrix(np.deg2rad([0.3, 0.0, -0.2])) @ R, t + [0.3, 0.0, 0.5], ids, ids,
+                     shape.points, 1.0)
+    assert np.abs(xy - ideal).max() < 0.03 and np.linalg.norm(tf - t) < 0.05
+    assert np.abs(median.undistort(measured) - ideal).max() > 0.5
+    # a family without per-frame terms has nothing of its own to fit
+    assert _own_terms(SimpleNamespace(camera=cam, family=family_named("radial+S"),
+                                      frame_distortion=lambda slot: median)) is None
+
+
+@pytest.mark.parametrize("family,own_terms", TWISTS)
+def test_the_second_looks_refit_of_a_right_labelling_reaches_the_noise_with_its_own_twist(family, own_terms):
+    cam, shape, R, t, ideal, measured, median, bundle = _twisted_frame(family, own_terms)
+    ids = np.arange(len(ideal))
+    start = Candidate(ids, ids, rotvec_to_matrix(np.deg2rad([0.5, -0.5, 0.3])) @ R, t + [0.5, -0.5, 1.0])
+    xy = median.undistort(measured)
+    plain = _refit(cam, shape.points, xy, start, gate=2.0)
+    mine = _refit(cam, shape.points, xy, start, gate=2.0, own=_own_terms(bundle)(measured))
+    assert mine.rms_px < 0.02 and plain.rms_px > 0.1, (mine.rms_px, plain.rms_px)
+    assert len(mine.sph) >= len(ids) - 1 and mine.xy is not None

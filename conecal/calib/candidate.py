@@ -25,6 +25,7 @@ class Candidate:
     how: str = ""
     lattice_map: tuple | None = None
     missing: int = 0           # spheres predicted clear on the detector but not found
+    xy: np.ndarray | None = None   # the frame's detections as its own distortion undistorts them (second look)
 
     @property
     def score(self) -> int:
@@ -35,28 +36,52 @@ class Candidate:
 def refine_pose(cam: Camera, P: np.ndarray, xy: np.ndarray, R, t, f_scale: float = 2.0):
     """Pose minimising the robust reprojection error of points P (n, 3) phantom
     frame seen at xy (n, 2) px, camera fixed. Returns R, t, residuals (n, 2)."""
+    return refine_pose_and_terms(cam, P, xy, R, t, f_scale)[:3]
+
+
+def refine_pose_and_terms(cam: Camera, P: np.ndarray, xy: np.ndarray, R, t, f_scale: float = 2.0,
+                          dist=None, free=()):
+    """As ``refine_pose``; with ``dist`` (a Distortion) ``xy`` are measured
+    positions, ``dist`` applied to the projection, and its coefficients at
+    indices ``free`` are fitted with the pose (a frame's own twist, which
+    trades with its pose). Returns R, t, residuals (n, 2), the distortion
+    as fitted (None without one)."""
     R0 = np.asarray(R, float)
+    free = list(free)
+    k0 = np.asarray(dist.coefficients, float) if dist is not None else None
 
     def split(x):
-        return rotvec_to_matrix(x[:3]) @ R0, np.asarray(t, float) + x[3:]
+        k = None
+        if dist is not None:
+            k = k0.copy()
+            k[free] = x[6:]
+        return rotvec_to_matrix(x[:3]) @ R0, np.asarray(t, float) + x[3:6], k
 
     def fun(x):
-        Rk, tk = split(x)
-        return (cam.project(P @ Rk.T + tk) - xy).ravel()
+        Rk, tk, k = split(x)
+        q = cam.project(P @ Rk.T + tk)
+        if dist is not None:
+            q = q + dist.basis(q) @ k
+        return (q - xy).ravel()
 
     def jac(x):
-        Rk, tk = split(x)
+        Rk, tk, k = split(x)
         Rp = P @ Rk.T
-        _, JX, _ = cam.project_jacobians(Rp + tk)
-        J = np.empty((len(P), 2, 6))
+        q, JX, _ = cam.project_jacobians(Rp + tk)
+        J = np.empty((len(P), 2, 6 + len(free)))
+        if dist is not None:
+            # d measured / d ideal = I + the displacement's gradient
+            JX = (np.eye(2) + np.einsum("nitj,t->nij", dist.basis_gradient(q), k)) @ JX
+            J[:, :, 6:] = dist.basis(q)[..., free]
         J[:, :, :3] = JX @ (-skew(Rp) @ so3_left_jacobian(x[:3]))
-        J[:, :, 3:] = JX
-        return J.reshape(-1, 6)
+        J[:, :, 3:6] = JX
+        return J.reshape(-1, 6 + len(free))
 
-    sol = least_squares(fun, np.zeros(6), jac=jac, loss="soft_l1", f_scale=f_scale, max_nfev=50,
-                        x_scale=np.array([1e-2, 1e-2, 1e-2, 1.0, 1.0, 1.0]))
-    Rk, tk = split(sol.x)
-    return Rk, tk, sol.fun.reshape(-1, 2)
+    x0 = np.concatenate([np.zeros(6), k0[free] if dist is not None else []])
+    sol = least_squares(fun, x0, jac=jac, loss="soft_l1", f_scale=f_scale, max_nfev=50,
+                        x_scale=np.concatenate([[1e-2, 1e-2, 1e-2, 1.0, 1.0, 1.0], np.full(len(free), 0.1)]))
+    Rk, tk, k = split(sol.x)
+    return Rk, tk, sol.fun.reshape(-1, 2), (dist.with_coefficients(k) if dist is not None else None)
 
 
 def assign(pred: np.ndarray, xy: np.ndarray, gate: float):
