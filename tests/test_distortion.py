@@ -13,8 +13,8 @@ SHAPE = (300, 400)
 
 def _random(rng, model):
     if model == "radial_tangential":
-        return Distortion.radial(SHAPE, centre=(210.0, 140.0), **dict(zip(("k1", "k2", "k3", "p1", "p2", "s"),
-                                                                          rng.normal(0, 0.8, 6))))
+        return Distortion.radial(SHAPE, centre=(210.0, 140.0), **dict(zip(("k1", "k2", "k3", "p1", "p2", "s", "q1",
+                                                                           "q2"), rng.normal(0, 0.8, 8))))
     return Distortion.polynomial(SHAPE, 3, rng.normal(0, 0.5, 2 * len(poly_terms(3))))
 
 
@@ -60,6 +60,31 @@ def test_named_coefficients_are_px_at_the_radius():
     assert np.allclose(d.displacement(corner), [0.7, 0.0])
     s = Distortion.radial(SHAPE, s=0.4)
     assert np.allclose(s.displacement(corner), [0.0, 0.4])   # counter-clockwise in (c, r): +r at +c
+
+
+def test_twist_decentring_is_the_first_order_of_a_moved_twist():
+    # an S twist about a centre moved by delta (normalised) = the twist about
+    # the old centre + q = -s delta, up to terms of order s delta^2
+    s = 2.0
+    base = Distortion.radial(SHAPE, s=s)
+    xy = np.random.default_rng(5).uniform(0, 300, (40, 2))
+    for delta in ([0.01, 0.0], [0.0, -0.02], [0.015, 0.01]):
+        delta = np.array(delta)
+        moved = Distortion.radial(SHAPE, s=s, centre=tuple(np.array(base.centre) + delta * base.radius))
+        q1, q2 = -s * delta
+        first = base.displacement(xy) + Distortion.radial(SHAPE, q1=q1, q2=q2).displacement(xy)
+        assert np.abs(moved.displacement(xy) - first).max() < 4 * s * float(delta @ delta)
+        # and the terms matter at that order: leaving them out errs by far more
+        assert np.abs(moved.displacement(xy) - base.displacement(xy)).max() > 10 * s * float(delta @ delta)
+
+
+def test_an_entry_written_before_the_twist_decentring_reads_it_as_zero():
+    old = {"model": "radial_tangential", "centre": [200.0, 150.0], "radius_px": 250.0,
+           "parameters": dict(zip(("k1", "k2", "k3", "p1", "p2", "s"), (0.5, 0.0, 0.0, 0.1, 0.0, 0.2)))}
+    d = Distortion.from_dict(old)
+    assert d.coefficients[d.names.index("q1")] == 0.0 and d.coefficients[d.names.index("q2")] == 0.0
+    from conecal.documents.common import Distortion as DistortionDoc
+    DistortionDoc.model_validate(old)
 
 
 def test_field_samples_every_pixel_centre():

@@ -441,6 +441,8 @@ FAMILIES = (
     Family("radial+S per frame", "radial_tangential", ("k1", "k2"), ("s",), free_centre=True),
     Family("radial+S+tangential, S per frame", "radial_tangential", ("k1", "k2", "p1", "p2"), ("s",),
            free_centre=True),
+    Family("radial+tangential, S and its centre per frame", "radial_tangential", ("k1", "k2", "p1", "p2"),
+           ("s", "q1", "q2"), free_centre=True),
     Family("polynomial3", "polynomial", tuple(Distortion.polynomial((2, 2), 3).names), degree=3),
 )
 

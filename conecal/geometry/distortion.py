@@ -16,7 +16,12 @@ returns the design so that a fit can solve for them, or differentiate):
     ``p1, p2`` Brown-Conrady decentring (tangential), and ``s rho^2 d_perp``
     (S-shaped twist, counter-clockwise > 0, as a magnetic field bends an
     image intensifier's electrons), about a centre that need not be the
-    principal point.
+    principal point; ``q1, q2`` the twist's own decentring: the tangential
+    terms turned a quarter counter-clockwise, ``q1 J(p1 basis) + q2 J(p2
+    basis)`` with ``J(u, v) = (-v, u)``, which is what an S twist ``s``
+    about a centre moved by ``delta`` (normalised) adds to first order
+    (``q = -s delta``): a field across the tube moves the twist's centre
+    as the C-arm turns. Files written before q1, q2 existed read them as 0.
 ``polynomial``
     ``dc, dr`` each a polynomial in ``d`` of total degree 2..n (the affine
     part is left out: a shift, scale, rotation or shear of the image is the
@@ -34,7 +39,9 @@ import numpy as np
 
 from ..errors import InputError
 
-RADIAL_TERMS = ("k1", "k2", "k3", "p1", "p2", "s")
+RADIAL_TERMS = ("k1", "k2", "k3", "p1", "p2", "s", "q1", "q2")
+# terms a distortion entry may leave out (read as 0): added after files were written
+OPTIONAL_TERMS = ("q1", "q2")
 
 
 def default_radius(shape) -> float:
@@ -125,13 +132,15 @@ class Distortion:
             r2 = x * x + y * y
             r4 = r2 * r2
             xy2 = 2 * x * y
-            B = np.empty(x.shape + (2, 6))     # filled in place: this runs in every bundle step
+            B = np.empty(x.shape + (2, 8))     # filled in place: this runs in every bundle step
             B[..., 0, 0], B[..., 1, 0] = x * r2, y * r2                    # k1
             B[..., 0, 1], B[..., 1, 1] = x * r4, y * r4                    # k2
             B[..., 0, 2], B[..., 1, 2] = x * r4 * r2, y * r4 * r2          # k3
             B[..., 0, 3], B[..., 1, 3] = r2 + 2 * x * x, xy2               # p1
             B[..., 0, 4], B[..., 1, 4] = xy2, r2 + 2 * y * y               # p2
             B[..., 0, 5], B[..., 1, 5] = -y * r2, x * r2                   # s
+            B[..., 0, 6], B[..., 1, 6] = -xy2, r2 + 2 * x * x              # q1: p1 turned
+            B[..., 0, 7], B[..., 1, 7] = -(r2 + 2 * y * y), xy2            # q2: p2 turned
             return B
         mono = np.stack([x ** i * y ** j for i, j in poly_terms(int(self.degree))], -1)
         z = np.zeros_like(mono)
@@ -147,7 +156,7 @@ class Distortion:
         if self.model == "radial_tangential":
             r2 = x * x + y * y
             xy2 = 2 * x * y
-            g = np.empty(x.shape + (2, 6, 2))  # (..., component, term, d/dx d/dy)
+            g = np.empty(x.shape + (2, 8, 2))  # (..., component, term, d/dx d/dy)
             for t, n in enumerate((1, 2, 3)):
                 rn, rm = r2 ** n, n * r2 ** (n - 1)
                 g[..., 0, t, 0], g[..., 0, t, 1] = rn + 2 * x * x * rm, xy2 * rm
@@ -156,6 +165,7 @@ class Distortion:
             g[..., 0, 4, 0], g[..., 0, 4, 1], g[..., 1, 4, 0], g[..., 1, 4, 1] = 2 * y, 2 * x, 2 * x, 6 * y    # p2
             g[..., 0, 5, 0], g[..., 0, 5, 1] = -xy2, -(r2 + 2 * y * y)                                         # s
             g[..., 1, 5, 0], g[..., 1, 5, 1] = r2 + 2 * x * x, xy2
+            g[..., 0, 6:8, :], g[..., 1, 6:8, :] = -g[..., 1, 3:5, :], g[..., 0, 3:5, :]                     # q1, q2
             return g / self.radius
         terms = poly_terms(int(self.degree))
         dx = np.stack([i * x ** max(i - 1, 0) * y ** j if i else z for i, j in terms], -1)
@@ -215,10 +225,10 @@ class Distortion:
             names = (RADIAL_TERMS if model == "radial_tangential" else
                      tuple(f"{a}_x{i}y{j}" for a in ("dc", "dr") for i, j in poly_terms(degree)))
             params = d["parameters"]
-            missing = [n for n in names if n not in params]
+            missing = [n for n in names if n not in params and n not in OPTIONAL_TERMS]
             if missing:
                 raise InputError(f"{where}.parameters: missing {missing[0]!r}")
-            return cls(model, tuple(d["centre"]), float(d["radius_px"]), tuple(float(params[n]) for n in names),
+            return cls(model, tuple(d["centre"]), float(d["radius_px"]), tuple(float(params.get(n, 0.0)) for n in names),
                        degree)
         except KeyError as exc:
             raise InputError(f"{where}: missing key {exc.args[0]!r}") from None
