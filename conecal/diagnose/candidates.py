@@ -265,7 +265,8 @@ def _distortion_family(model) -> list[Candidate]:
     out = []
 
     def free(x):
-        return DetectorWarp(base.with_coefficients((x[2], x[3], 0.0, x[4], x[5], x[6]), tuple(c0 + x[:2])))
+        return DetectorWarp(Distortion.radial(shape, centre=tuple(c0 + x[:2]), radius=base.radius, k1=x[2], k2=x[3],
+                                              p1=x[4], p2=x[5], s=x[6]))
 
     out.append(Candidate("detector_distortion:radial_tangential",
                          ("dc0", "dr0", "k1", "k2", "p1", "p2", "s"), ("px",) * 7, (5.0, 5.0) + (0.05,) * 5,
