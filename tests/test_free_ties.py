@@ -7,13 +7,15 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
-from conecal.calib.bundle import family_named
+from conecal.calib.bundle import Observations, family_named
 from conecal.calib.camera import Camera
 from conecal.calib.candidate import Candidate
 from conecal.calib.phantom import describe_phantom
+from conecal.calib.run import FreeOptions, _judge
 from conecal.calib.search import search_frame
 from conecal.calib.second_look import _own_terms, _refit
 from conecal.geometry import ConeGeometry, rotvec_to_matrix
+from conecal.documents.status import OK
 from conecal.geometry.distortion import Distortion
 from conecal.simulate.carm import grid_phantom
 
@@ -94,3 +96,24 @@ def test_the_second_looks_refit_of_a_right_labelling_reaches_the_noise_with_its_
     mine = _refit(cam, shape.points, xy, start, gate=2.0, own=_own_terms(bundle)(measured))
     assert mine.rms_px < 0.02 and plain.rms_px > 0.1, (mine.rms_px, plain.rms_px)
     assert len(mine.sph) >= len(ids) - 1 and mine.xy is not None
+
+
+def _judged(rms, bar=0.0):
+    """Frames whose residuals have these RMS (px), judged; returns (dropped, limit, statuses)."""
+    slot = np.repeat(np.arange(len(rms)), 10)
+    res = np.repeat(np.array(rms)[:, None] / np.sqrt(2), 10, 0) * np.ones((1, 2))
+    obs = Observations(slot, np.zeros(len(slot), int), np.zeros((len(slot), 2)), np.full(len(slot), 0.05))
+    frames = [{"frame": k, "status": OK} for k in range(len(rms))]
+    dropped, limit = _judge(SimpleNamespace(residual_px=res), frames, obs, FreeOptions(), bar)
+    return dropped, limit, [f["status"].ok for f in frames]
+
+
+def test_a_rejected_frame_does_not_lower_the_limit_the_next_one_is_held_to():
+    rms = [0.10, 0.11, 0.13, 0.15, 0.33, 0.40]
+    dropped, limit, ok = _judged(rms)                  # median 0.14: limit 0.35
+    assert dropped and limit == pytest.approx(0.35) and ok == [True] * 5 + [False]
+    # solved again without it, the median is 0.13: 0.33 would fail 0.325
+    assert _judged(rms[:5])[2][4] is False
+    dropped, limit, ok = _judged(rms[:5], bar=limit)
+    assert not dropped and all(ok) and limit == pytest.approx(0.35)
+
