@@ -83,7 +83,7 @@ def test_a_frame_outside_the_bundle_is_undistorted_with_its_own_twist(family, ow
     assert np.abs(median.undistort(measured) - ideal).max() > 0.5
     # a family without per-frame terms has nothing of its own to fit
     assert _own_terms(SimpleNamespace(camera=cam, family=family_named("radial+S"),
-                                      frame_distortion=lambda slot: median)) is None
+                                      frame_distortion=lambda slot: median))(measured) is None
 
 
 @pytest.mark.parametrize("family,own_terms", TWISTS)

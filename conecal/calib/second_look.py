@@ -55,21 +55,19 @@ _MSAC_MARGIN = 2 * _MSAC_CAP
 
 
 def _own_terms(b: Bundle):
-    """For a frame outside the bundle, when the family has per-frame terms
-    (an intensifier's twist and its centre, which follow the field as the
-    arm turns): raw detections (n, 2) px -> a function (R, t, sph, det,
-    points, gate) -> (R, t, those detections undistorted), the pose and the
-    frame's own terms fitted together (robust at ``gate`` px) to the pairs
-    (``sph``, ``det``), the shared distortion held. None otherwise. The per-frame terms' median
-    would leave a frame its own twist: on an independent renderer whose
-    twist's centre moves 60-150 px from frame to frame, the right
-    identification of a ball phantom's frame missed the noise floor by
-    0.43 px against 0.41."""
+    """Raw detections (n, 2) px of a frame -> None, or, when the family has
+    per-frame terms (an intensifier's twist and its centre, which follow the
+    field as the arm turns), a function (R, t, sph, det, points, gate) ->
+    (R, t, those detections undistorted): the pose and the frame's own terms
+    fitted together (robust at ``gate`` px) to the pairs (``sph``,
+    ``det``), the shared distortion held. The per-frame terms' median would
+    leave a frame its own twist: on an independent renderer whose twist's
+    centre moves 60-150 px from frame to frame, the right identification of
+    a ball phantom's frame missed the noise floor by 0.43 px against 0.41."""
     dist = b.frame_distortion(None)
     if dist is None or not b.family.per_frame:
-        return None
-    names = b.family.per_frame
-    free = [dist.names.index(n) for n in names]
+        return lambda raw: None
+    free = [dist.names.index(n) for n in b.family.per_frame]
     cam = b.camera
 
     def for_frame(raw: np.ndarray):
@@ -135,7 +133,7 @@ def second_look(b: Bundle, out: list, usable: list, dets: dict, shape, points: n
             continue
         current = Candidate(np.asarray(d), np.asarray(p), b.R[s], b.t[s], how=fr["search"].best.how)
         verdict = _decide(cam, dist, shape, points, dets[fr["frame"]][0], [current], gate, pooled, opt,
-                          own_for(dets[fr["frame"]][0]) if own_for else None)
+                          own_for(dets[fr["frame"]][0]))
         if verdict is None or isinstance(verdict, Tie):
             fr["status"] = ambiguous("ambiguous_identity", verdict.sentence if verdict else "no identification "
                                      "explains this frame's markers at the noise floor with the calibrated camera")
@@ -160,7 +158,7 @@ def second_look(b: Bundle, out: list, usable: list, dets: dict, shape, points: n
             continue
         old = [res.best, *res.alternatives] if res.best is not None else []
         verdict = _decide(cam, dist, shape, points, dets[fr["frame"]][0], old, gate, pooled, opt,
-                          own_for(dets[fr["frame"]][0]) if own_for else None)
+                          own_for(dets[fr["frame"]][0]))
         if verdict is None or isinstance(verdict, Tie):
             ties[fr["frame"]] = (fr, verdict or Tie(fr["status"].detail, []))
         elif shape.lattice is None and _unexplained(dets[fr["frame"]][1], verdict[0].det, gate):
@@ -180,7 +178,8 @@ def second_look(b: Bundle, out: list, usable: list, dets: dict, shape, points: n
     # neighbours' ties need it)
     posed = {fr["frame"]: (b.R[fr["slot"]], b.t[fr["slot"]]) for fr in usable if fr not in lost and fr not in won}
     posed.update({fr["frame"]: (fr["search"].best.R, fr["search"].best.t) for fr in won})
-    for fr, verdict in _searched_near(cam, dist, shape, points, posed, ties, dets, gate, pooled, opt, own_for):
+    for fr, verdict in _searched_near(cam, dist, shape, points, posed, ties, dets, gate, pooled, opt,
+                                      own_for):
         ties.pop(fr["frame"])
         if fr["frame"] in pending and not _new(verdict[0], pending.pop(fr["frame"])[2]):
             continue
@@ -235,7 +234,7 @@ def _identified(fr: dict, best: Candidate, convention: str) -> None:
 
 
 def _searched_near(cam, dist, shape, points, posed: dict, ties: dict, dets: dict, gate, pooled, opt,
-                   own_for=None):
+                   own_for=lambda raw: None):
     """Tied frames of a phantom off a lattice, and frames no candidate
     explains at the noise floor (an empty tie), searched again near the pose
     their ok neighbours predict (the orientations voted within 45 deg of it)
@@ -258,7 +257,7 @@ def _searched_near(cam, dist, shape, points, posed: dict, ties: dict, dets: dict
         if not new:
             continue
         verdict = _rank(cam, shape, points, xy, tie.cands + new, gate, pooled, opt, tie.convention,
-                        own_for(dets[k][0]) if own_for else None)
+                        own_for(dets[k][0]))
         if isinstance(verdict, Tie):
             ties[k] = (fr, verdict)
             fr["status"] = ambiguous("ambiguous_identity", verdict.sentence)
