@@ -138,7 +138,15 @@ def run_case(gen, name: str, seed: int, root: Path) -> dict:
             # one: the held-out points, in the true phantom frame, are carried along)
             P, Q = to_ours(np.array(h["points"])), np.array(h["pixels"])
             held.append(np.sum((b.predict(P, np.full(len(P), f["slot"])) - Q) ** 2, 1))
+    # the intrinsics against the renderer's truth, in their stated sigma (the
+    # principal point is where a model's leftover structure shows first)
+    it = doc["intrinsics"]
+    true = {"sdd": truth["sdd"], "c0": truth["principal_point"][0], "r0": truth["principal_point"][1]}
+    intr_z = {k: round(float((it[k]["value"] - v) / it[k]["sigma"]), 1) if it[k].get("sigma") else None
+              for k, v in true.items()}
+    intr_err = {k: round(float(it[k]["value"] - v), 1) for k, v in true.items()}
     return {"case": name, "seed": seed,
+            "intrinsics_err": intr_err, "intrinsics_z": intr_z,
             "found": {c: f"{found[c]}/{n_in[c]}" for c in n_in},
             "rms_px": {c: float(np.sqrt(np.mean(np.square(errs[c])))) if errs[c] else None for c in errs},
             "pull_std": {k: [round(float(np.std(v)), 2), round(float(mad_sigma(v)), 2), len(v) // 2]
