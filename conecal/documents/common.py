@@ -100,11 +100,9 @@ class Distortion(Doc):
 
     @model_validator(mode="after")
     def _terms(self):
-        from ..geometry.distortion import OPTIONAL_TERMS, RADIAL_TERMS, poly_terms
+        from ..geometry.distortion import missing_terms
 
-        names = (RADIAL_TERMS if self.model == "radial_tangential" else
-                 [f"{a}_x{i}y{j}" for a in ("dc", "dr") for i, j in poly_terms(self.degree or 0)])
-        missing = [n for n in names if n not in self.parameters and n not in OPTIONAL_TERMS]
+        missing = missing_terms(self.model, self.degree or 0, self.parameters)
         if missing:
             raise ValueError(f"parameters: the {self.model} model needs {missing[0]!r}")
         return self

@@ -55,6 +55,19 @@ def detector_centre(shape) -> tuple[float, float]:
     return ((cols - 1) / 2.0, (rows - 1) / 2.0)
 
 
+def term_names(model: str, degree: int = 0) -> tuple:
+    """The coefficient names of ``model`` (of ``degree`` for a polynomial), in order."""
+    if model == "radial_tangential":
+        return RADIAL_TERMS
+    return tuple(f"{a}_x{i}y{j}" for a in ("dc", "dr") for i, j in poly_terms(int(degree)))
+
+
+def missing_terms(model: str, degree: int, parameters) -> list:
+    """The names ``model`` needs that ``parameters`` lacks (a term added after
+    files were written, ``OPTIONAL_TERMS``, is read as 0 and not needed)."""
+    return [n for n in term_names(model, degree) if n not in parameters and n not in OPTIONAL_TERMS]
+
+
 def poly_terms(degree: int) -> list[tuple[int, int]]:
     """Exponents ``(i, j)`` of ``x^i y^j`` with ``2 <= i + j <= degree``."""
     return [(n - j, j) for n in range(2, degree + 1) for j in range(n + 1)]
@@ -79,11 +92,11 @@ class Distortion:
 
     def __post_init__(self):
         if self.model == "radial_tangential":
-            names = RADIAL_TERMS
+            names = term_names(self.model)
         elif self.model == "polynomial":
             if int(self.degree) < 2:
                 raise InputError(f"distortion: a polynomial needs degree >= 2, not {self.degree}")
-            names = tuple(f"{a}_x{i}y{j}" for a in ("dc", "dr") for i, j in poly_terms(int(self.degree)))
+            names = term_names(self.model, self.degree)
         else:
             raise InputError(f"distortion: unknown model {self.model!r} (radial_tangential, polynomial)")
         c = np.asarray(self.centre, float)
@@ -222,10 +235,9 @@ class Distortion:
         model = d.get("model")
         try:
             degree = int(d.get("degree", 0))
-            names = (RADIAL_TERMS if model == "radial_tangential" else
-                     tuple(f"{a}_x{i}y{j}" for a in ("dc", "dr") for i, j in poly_terms(degree)))
+            names = term_names(model, degree)
             params = d["parameters"]
-            missing = [n for n in names if n not in params and n not in OPTIONAL_TERMS]
+            missing = missing_terms(model, degree, params)
             if missing:
                 raise InputError(f"{where}.parameters: missing {missing[0]!r}")
             return cls(model, tuple(d["centre"]), float(d["radius_px"]), tuple(float(params.get(n, 0.0)) for n in names),
