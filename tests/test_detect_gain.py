@@ -5,7 +5,8 @@ the centroid shift a background slope then causes."""
 import numpy as np
 
 from conecal.detect.crowded import detect_frame
-from conecal.detect.frame import Blob, DetectOptions, ring_mask
+from conecal.detect.frame import Blob, DetectOptions
+from conecal.detect.ring import ring_mask
 from conecal.detect.gain import measure_gain, with_background, with_gain_sigma
 from conecal.detect.noise import noise_correlation, noise_pixel
 

@@ -37,6 +37,7 @@ from . import kernels
 from .chain import anisotropy, chain_like, rough_blob
 from .noise import noise_pixel
 from .peaks import candidates, invalid_mask, small_frame
+from .ring import keep_out
 
 
 @dataclass(frozen=True)
@@ -195,7 +196,7 @@ def refine(a: np.ndarray, x0: float, y0: float, r0: float, opt: DetectOptions, o
             fitted_at = (x, y, r, bounds)
             ox = np.array([o[0] - c0 for o in others]) if others else _EMPTY
             oy = np.array([o[1] - q0 for o in others]) if others else _EMPTY
-            orad = np.array([k[2] for k in keep_out(others, 0, 0, opt)]) if others else _EMPTY
+            orad = np.array([k[2] for k in keep_out(others, 0, 0, opt.blur_px)]) if others else _EMPTY
             coef, quad, sig_bg, n_in, s_ring, hidden = kernels.fit_background(
                 roi, inv, cx, cy, r_in, r_out, rw, ox, oy, orad, 150,
                 _F_QUAD * opt.noise_kappa if plane_test else 0.0)
@@ -326,30 +327,6 @@ def refine(a: np.ndarray, x0: float, y0: float, r0: float, opt: DetectOptions, o
         flags.append("clutter")
     return Blob(float(x), float(y), r, float(np.sqrt(sigma2)), float(mu_px), peak, aniso, flags,
                 float(peak / sig_bg), misfit)
-
-
-def keep_out(others, c0: int, q0: int, opt: DetectOptions) -> list:
-    """(x, y, radius) in a box at column c0, row q0 of the discs that the
-    shadows ``others`` ((x, y, r) in the frame, px) cover, blur and a
-    margin included: what a background ring leaves out."""
-    return [(ox - c0, oy - q0, 1.15 * r + 3 * opt.blur_px + 2) for ox, oy, r in others]
-
-
-def ring_mask(shape: tuple[int, int], x: float, y: float, r0: float, r1: float, discs=(),
-              invalid: np.ndarray | None = None) -> np.ndarray:
-    """The pixels of a box of ``shape`` (rows, cols) between r0 and r1 px of
-    (x, y) (box coordinates: column, row), without the ``discs`` ((x, y,
-    radius) each: other shadows, as :func:`keep_out` gives them) and
-    ``invalid`` pixels."""
-    yy, xx = np.mgrid[0:shape[0], 0:shape[1]]
-    d2 = (xx - x) ** 2 + (yy - y) ** 2
-    ring = (d2 >= r0 * r0) & (d2 <= r1 * r1)
-    for ox, oy, orad in discs:
-        if abs(ox - x) < r1 + orad and abs(oy - y) < r1 + orad:
-            ring &= (xx - ox) ** 2 + (yy - oy) ** 2 > orad * orad
-    if invalid is not None and invalid.shape == ring.shape:
-        ring &= ~invalid
-    return ring
 
 
 def window_radius(r, blur: float):

@@ -32,7 +32,8 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from ..stats import mad_sigma
-from .frame import Blob, DetectOptions, keep_out, ring_mask, window_radius
+from .frame import Blob, DetectOptions, window_radius
+from .ring import keep_out, ring_mask
 
 _MIN_MARKERS = 30     # markers measured alone a scan needs before eta is trusted
 
@@ -70,7 +71,7 @@ def with_background(a: np.ndarray, blobs: list[Blob], opt: DetectOptions) -> lis
         roi = a[q0:q1, c0:c1].astype(np.float64)
         bad = ~np.isfinite(roi) if opt.max_attenuation is None else ~(roi <= opt.max_attenuation)
         others = keep_out([(o.x, o.y, o.radius) for o in blobs if o is not b and _finite(o.x, o.y, o.radius)],
-                          c0, q0, opt)
+                          c0, q0, opt.blur_px)
         use = ring_mask(roi.shape, b.x - c0, b.y - q0, r_in, r_out, others, bad)
         yy, xx = np.mgrid[q0:q1, c0:c1]
         dx, dy = xx - b.x, yy - b.y

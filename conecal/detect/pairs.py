@@ -20,8 +20,9 @@ from dataclasses import replace
 import numpy as np
 
 from ..stats import mad_sigma
-from .frame import moment_trace, ring_mask
+from .frame import moment_trace
 from .overlap import disc_misfit, fit_group, group_box, joint_sigma, neighbours
+from .ring import ring_mask
 from .rod import line_of, run_on
 from .split import ADEQUATE
 
