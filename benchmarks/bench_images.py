@@ -62,13 +62,17 @@ def _match(markers: list, centres: list):
     return out
 
 
-def run_case(gen, name: str, seed: int, root: Path) -> dict:
+def run_case(gen, name: str, seed: int, root: Path, reuse: bool = False) -> dict:
+    """``reuse``: fit the case's markers already in ``root`` (rendered and
+    detected by an earlier run), so that two builds of fit-pose compare on
+    the same markers."""
     out = root / f"{name}_{seed}"
-    gen.make_case(name, seed, out)
-    truth = json.loads((out / "truth.json").read_text())
     mpath = out / "markers.json"
     t0 = time.perf_counter()
-    subprocess.run(["conecal", "-q", "detect", str(out / "scan"), "-o", str(mpath)], check=True)
+    if not (reuse and mpath.exists()):
+        gen.make_case(name, seed, out)
+        subprocess.run(["conecal", "-q", "detect", str(out / "scan"), "-o", str(mpath)], check=True)
+    truth = json.loads((out / "truth.json").read_text())
     t_detect = time.perf_counter() - t0
     mdoc = json.loads(mpath.read_text())
     by_frame = {int(f["frame"]): f["markers"] for f in mdoc["frames"]}
@@ -165,6 +169,8 @@ def main(argv=None) -> int:
     ap.add_argument("--seeds", type=int, nargs="*", default=[1])
     ap.add_argument("--work", type=Path, help="keep the cases here (default: a temporary folder)")
     ap.add_argument("--gen", default="carm_images", help="renderer module in benchmarks/ (carm_images, carm_images2)")
+    ap.add_argument("--reuse", action="store_true",
+                    help="with --work: fit the markers an earlier run left there (no rendering, no detect)")
     a = ap.parse_args(argv)
     gen = importlib.import_module(a.gen)
     cases = a.cases or list(gen.CASES)
@@ -173,7 +179,7 @@ def main(argv=None) -> int:
         root = a.work or Path(tmp)
         for seed in a.seeds:
             for name in cases:
-                print(json.dumps(run_case(gen, name, seed, root)), flush=True)
+                print(json.dumps(run_case(gen, name, seed, root, a.reuse and a.work is not None)), flush=True)
     return 0
 
 

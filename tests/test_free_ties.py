@@ -55,7 +55,7 @@ def test_a_grid_corner_moved_beyond_the_gate_still_names_the_grid():
 
 # a family with per-frame terms, and what a frame's own terms are against the bundle's median
 TWISTS = [("radial+S+tangential, S per frame", dict(s=12.0)),
-          ("radial+tangential, S and its centre per frame", dict(s=4.0, q1=2.0, q2=-1.5))]
+          ("radial+tangential, S and its centre per frame", dict(s=4.0, twist_centre=(330.0, 200.0)))]
 
 
 def _twisted_frame(family, own_terms):

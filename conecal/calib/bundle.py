@@ -39,7 +39,9 @@ POSE = ("rx", "ry", "rz", "tx", "ty", "tz")
 @dataclass(frozen=True)
 class Family:
     """A distortion model: ``model`` (None: no distortion), the coefficients
-    it frees (shared), those it frees per frame, a free centre, a degree."""
+    it frees (shared), those it frees per frame, a free centre, a degree;
+    ``twist_centre``: the S twist turns about a centre of its own per frame
+    (px from the distortion's centre, fitted per frame)."""
 
     name: str
     model: str | None = None
@@ -47,11 +49,17 @@ class Family:
     per_frame: tuple = ()
     free_centre: bool = False
     degree: int = 0
+    twist_centre: bool = False
 
     @property
     def k(self) -> int:
         """Shared parameter count (the per-frame ones count once per frame)."""
         return len(self.shared) + 2 * self.free_centre
+
+    @property
+    def k_frame(self) -> int:
+        """Parameters per frame."""
+        return len(self.per_frame) + 2 * self.twist_centre
 
     def start(self, shape) -> Distortion | None:
         if self.model is None:
@@ -105,6 +113,9 @@ class Bundle:
     # and the prior sigma (mm) it was fitted with; None / 0: CAD as given
     point_offsets: np.ndarray | None = None
     points_sigma: float = 0.0
+    # each frame's twist centre (F, 2) px from the distortion's centre (a
+    # family with ``twist_centre``), else None
+    twist: np.ndarray | None = None
 
     def phantom(self, points: np.ndarray) -> np.ndarray:
         """The phantom's points (P, 3) mm as this bundle has them."""
@@ -118,15 +129,18 @@ class Bundle:
 
     def frame_distortion(self, slot: int | None) -> Distortion | None:
         """Frame ``slot``'s distortion: the shared part with its per-frame
-        terms; ``None``: each per-frame term at its median over the frames
-        (for a frame outside the bundle)."""
+        terms (and twist centre); ``None``: each at its median over the
+        frames (for a frame outside the bundle)."""
         if self.distortion is None or not self.family.per_frame:
             return self.distortion
         values = np.median(self.per_frame, axis=0) if slot is None else self.per_frame[slot]
         k = list(self.distortion.coefficients)
         for n, v in zip(self.family.per_frame, values):
             k[self.distortion.names.index(n)] = float(v)
-        return self.distortion.with_coefficients(k)
+        about = None
+        if self.twist is not None:
+            about = np.asarray(self.distortion.centre) + (np.median(self.twist, 0) if slot is None else self.twist[slot])
+        return self.distortion.with_coefficients(k, twist_centre=about)
 
     def predict(self, points: np.ndarray, slot: np.ndarray, radius: float | None = None) -> np.ndarray:
         """Measured position (N, 2) px of phantom points (N, 3) in frames ``slot``;
@@ -160,7 +174,8 @@ class Bundle:
 def _distort(b: Bundle, q, slot):
     if b.distortion is None:
         return q
-    basis = b.distortion.basis(q)                        # (N, 2, n)
+    about = None if b.twist is None else np.asarray(b.distortion.centre) + b.twist[slot]
+    basis = b.distortion.basis(q, about)                 # (N, 2, n)
     coef = np.tile(np.asarray(b.distortion.coefficients), (len(q), 1))
     for j, n in enumerate(b.family.per_frame):
         coef[:, b.distortion.names.index(n)] = b.per_frame[slot, j]
@@ -202,6 +217,7 @@ def adjust(family: Family, camera: Camera, obs: Observations, points: np.ndarray
     shape = camera.shape
     dist = family.start(shape)
     per = np.zeros((F, len(family.per_frame)))
+    tw = np.zeros((F, 2 * family.twist_centre))
     if frame_intrinsics is None:
         frame_intrinsics = dict(start.frame_intrinsics) if start is not None else {}
     fi_idx = [INTRINSICS.index(n) for n in frame_intrinsics]
@@ -219,6 +235,8 @@ def adjust(family: Family, camera: Camera, obs: Observations, points: np.ndarray
             for j, n in enumerate(family.per_frame):
                 per[:, j] = start.per_frame[:, start.family.per_frame.index(n)] if n in start.family.per_frame \
                     else dist.coefficients[dist.names.index(n)]
+            if family.twist_centre and start.twist is not None:
+                tw[:] = start.twist
     if points_sigma is None:
         points_sigma = start.points_sigma if start is not None else 0.0
     P = len(points) if points_sigma else 0
@@ -252,17 +270,21 @@ def adjust(family: Family, camera: Camera, obs: Observations, points: np.ndarray
     scales += [0.01] * 3 * P
     units += ["mm"] * 3 * P
     i_pose = len(names)
-    npd = 6 + len(family.per_frame)
+    n_per = len(family.per_frame)
+    npd = 6 + family.k_frame
     npf = npd + len(fi_idx)
+    twist_names = ["twist_dc", "twist_dr"] if family.twist_centre else []
     for k in range(F):
         names += [f"frame{k}_{n}" for n in POSE] + [f"frame{k}_distortion_{n}" for n in family.per_frame]
+        names += [f"frame{k}_distortion_{n}" for n in twist_names]
         names += [f"frame{k}_{INTRINSICS[i]}_offset" for i in fi_idx]
-        values += [0, 0, 0, *t0[k]] + list(per[k]) + list(off[k, fi_idx])
-        scales += [1e-3, 1e-3, 1e-3, 0.01, 0.01, 0.01] + [0.1] * len(family.per_frame) + [0.1] * len(fi_idx)
-        units += ["rad"] * 3 + ["mm"] * 3 + ["px"] * len(family.per_frame)
+        values += [0, 0, 0, *t0[k]] + list(per[k]) + list(tw[k]) + list(off[k, fi_idx])
+        scales += [1e-3, 1e-3, 1e-3, 0.01, 0.01, 0.01] + [0.1] * n_per + [1.0] * len(twist_names) + [0.1] * len(fi_idx)
+        units += ["rad"] * 3 + ["mm"] * 3 + ["px"] * (n_per + len(twist_names))
         units += [INTRINSIC_UNITS[INTRINSICS[i]] for i in fi_idx]
     shared_idx = [dist.names.index(n) for n in family.shared] if dist is not None else []
     per_idx = [dist.names.index(n) for n in family.per_frame] if dist is not None else []
+    i_s = dist.names.index("s") if family.twist_centre else None
     sig = obs.sigma[:, None]
     inv_sig = 1.0 / obs.sigma[:, None, None]
     bias = np.zeros((N, 2))
@@ -300,13 +322,15 @@ def adjust(family: Family, camera: Camera, obs: Observations, points: np.ndarray
             A = None
             basis = None
         else:
-            basis = d.basis(q)
+            about = np.asarray(d.centre) + blocks[slot, 6 + n_per:npd] if family.twist_centre else None
+            basis = d.basis(q, about)
             coef = np.tile(np.asarray(d.coefficients), (N, 1))
             if per_idx:
-                coef[:, per_idx] = blocks[slot, 6:npd]
+                coef[:, per_idx] = blocks[slot, 6:6 + n_per]
             m = q + np.einsum("nij,nj->ni", basis, coef)
             if need_jac:
-                Jq = np.einsum("nikj,nk->nij", d.basis_gradient(q), coef)      # d displacement / d q
+                grad = d.basis_gradient(q, about)
+                Jq = np.einsum("nikj,nk->nij", grad, coef)                    # d displacement / d q
                 Jc = -Jq                                                      # ... / d centre
                 A = np.eye(2)[None] + Jq          # d m / d q
         if not need_jac:
@@ -330,6 +354,9 @@ def adjust(family: Family, camera: Camera, obs: Observations, points: np.ndarray
         Jf[:, :, 3:6] = AJX
         for j, ci in enumerate(per_idx):
             Jf[:, :, 6 + j] = basis[:, :, ci]
+        if family.twist_centre:
+            # the twist's centre: the S term's basis moves with it
+            Jf[:, :, 6 + n_per:npd] = -coef[:, i_s, None, None] * grad[:, :, i_s, :]
         for j, i in enumerate(fi_idx):
             Jf[:, :, npd + j] = JKa[:, :, i]
         if sparse:
@@ -361,6 +388,11 @@ def adjust(family: Family, camera: Camera, obs: Observations, points: np.ndarray
         # prior (half the normalising radius about the detector centre) keeps it
         # put there, and is negligible against any distortion the data show.
         prior([3, 4], 1.0 / (0.5 * dist.radius), centre)
+    if family.twist_centre:
+        # a frame's twist centre is blind while its twist is nil: as weak a
+        # prior as the distortion centre's, about that centre
+        prior((i_pose + np.arange(F)[:, None] * npf + 6 + n_per + np.arange(2)[None]).ravel(),
+              1.0 / (0.5 * dist.radius), 0.0)
     # the per-frame intrinsics' zero-mean prior: one row per frame and name
     prior((i_pose + np.arange(F)[:, None] * npf + npd + np.arange(len(fi_idx))[None]).ravel(),
           np.tile(1.0 / fi_sig, F) if fi_idx else [], 0.0)
@@ -428,9 +460,10 @@ def adjust(family: Family, camera: Camera, obs: Observations, points: np.ndarray
     # the reduced chi-square of the markers alone (the prior rows are not data)
     res = markers_chi2(fit)
     scale = max(1.0, fit.reduced_chi2) if np.isfinite(fit.reduced_chi2) else 1.0
-    return Bundle(family, cam, d, blocks[:, 6:npd].copy(), Rk, blocks[:, 3:6].copy(), res, fit, scale, names,
+    return Bundle(family, cam, d, blocks[:, 6:6 + n_per].copy(), Rk, blocks[:, 3:6].copy(), res, fit, scale, names,
                   slot.copy(), dict(frame_intrinsics), offsets(blocks) if fi_idx else None, ps,
-                  x[i_pts:i_pose].reshape(P, 3).copy() if P else None, float(points_sigma))
+                  x[i_pts:i_pose].reshape(P, 3).copy() if P else None, float(points_sigma),
+                  blocks[:, 6 + n_per:npd].copy() if family.twist_centre else None)
 
 
 FAMILIES = (
@@ -441,8 +474,8 @@ FAMILIES = (
     Family("radial+S per frame", "radial_tangential", ("k1", "k2"), ("s",), free_centre=True),
     Family("radial+S+tangential, S per frame", "radial_tangential", ("k1", "k2", "p1", "p2"), ("s",),
            free_centre=True),
-    Family("radial+tangential, S and its centre per frame", "radial_tangential", ("k1", "k2", "p1", "p2"),
-           ("s", "q1", "q2"), free_centre=True),
+    Family("radial+tangential, S and its centre per frame", "radial_tangential", ("k1", "k2", "p1", "p2", "q1", "q2"),
+           ("s",), free_centre=True, twist_centre=True),
     Family("polynomial3", "polynomial", tuple(Distortion.polynomial((2, 2), 3).names), degree=3),
 )
 

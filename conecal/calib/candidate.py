@@ -40,48 +40,62 @@ def refine_pose(cam: Camera, P: np.ndarray, xy: np.ndarray, R, t, f_scale: float
 
 
 def refine_pose_and_terms(cam: Camera, P: np.ndarray, xy: np.ndarray, R, t, f_scale: float = 2.0,
-                          dist=None, free=()):
+                          dist=None, free=(), twist: bool = False):
     """As ``refine_pose``; with ``dist`` (a Distortion) ``xy`` are measured
     positions, ``dist`` applied to the projection, and its coefficients at
     indices ``free`` are fitted with the pose (a frame's own twist, which
-    trades with its pose). Returns R, t, residuals (n, 2), the distortion
-    as fitted (None without one)."""
+    trades with its pose), and with ``twist`` its twist's centre (px) too.
+    Returns R, t, residuals (n, 2), the distortion as fitted (None without
+    one)."""
     R0 = np.asarray(R, float)
     free = list(free)
+    nf = len(free)
     k0 = np.asarray(dist.coefficients, float) if dist is not None else None
+    about0 = np.asarray(dist.twist_centre if dist is not None and dist.twist_centre is not None else
+                        (dist.centre if dist is not None else (0.0, 0.0)), float)
+    i_s = dist.names.index("s") if twist else None
 
     def split(x):
         k = None
         if dist is not None:
             k = k0.copy()
-            k[free] = x[6:]
-        return rotvec_to_matrix(x[:3]) @ R0, np.asarray(t, float) + x[3:6], k
+            k[free] = x[6:6 + nf]
+        return rotvec_to_matrix(x[:3]) @ R0, np.asarray(t, float) + x[3:6], k, (about0 + x[6 + nf:] if twist else None)
 
     def fun(x):
-        Rk, tk, k = split(x)
+        Rk, tk, k, about = split(x)
         q = cam.project(P @ Rk.T + tk)
         if dist is not None:
-            q = q + dist.basis(q) @ k
+            q = q + dist.basis(q, about) @ k
         return (q - xy).ravel()
 
     def jac(x):
-        Rk, tk, k = split(x)
+        Rk, tk, k, about = split(x)
         Rp = P @ Rk.T
         q, JX, _ = cam.project_jacobians(Rp + tk)
-        J = np.empty((len(P), 2, 6 + len(free)))
+        J = np.empty((len(P), 2, len(x)))
         if dist is not None:
+            grad = dist.basis_gradient(q, about)
             # d measured / d ideal = I + the displacement's gradient
-            JX = (np.eye(2) + np.einsum("nitj,t->nij", dist.basis_gradient(q), k)) @ JX
-            J[:, :, 6:] = dist.basis(q)[..., free]
+            JX = (np.eye(2) + np.einsum("nitj,t->nij", grad, k)) @ JX
+            J[:, :, 6:6 + nf] = dist.basis(q, about)[..., free]
+            if twist:
+                J[:, :, 6 + nf:] = -k[i_s] * grad[:, :, i_s, :]
         J[:, :, :3] = JX @ (-skew(Rp) @ so3_left_jacobian(x[:3]))
         J[:, :, 3:6] = JX
-        return J.reshape(-1, 6 + len(free))
+        return J.reshape(-1, len(x))
 
-    x0 = np.concatenate([np.zeros(6), k0[free] if dist is not None else []])
-    sol = least_squares(fun, x0, jac=jac, loss="soft_l1", f_scale=f_scale, max_nfev=50,
-                        x_scale=np.concatenate([[1e-2, 1e-2, 1e-2, 1.0, 1.0, 1.0], np.full(len(free), 0.1)]))
-    Rk, tk, k = split(sol.x)
-    return Rk, tk, sol.fun.reshape(-1, 2), (dist.with_coefficients(k) if dist is not None else None)
+    x0 = np.concatenate([np.zeros(6), k0[free] if dist is not None else [], np.zeros(2 * twist)])
+    # the twist's centre within half the detector's half-diagonal of where it
+    # starts: where the twist is weak a far centre is a second, false minimum
+    reach = np.full(2 * twist, 0.5 * dist.radius if twist else 0.0)
+    lo = np.concatenate([np.full(len(x0) - reach.size, -np.inf), -reach])
+    sol = least_squares(fun, x0, jac=jac, loss="soft_l1", f_scale=f_scale, max_nfev=50, bounds=(lo, -lo),
+                        x_scale=np.concatenate([[1e-2, 1e-2, 1e-2, 1.0, 1.0, 1.0], np.full(nf, 0.1),
+                                                np.full(2 * twist, 10.0)]))
+    Rk, tk, k, about = split(sol.x)
+    return Rk, tk, sol.fun.reshape(-1, 2), \
+        (dist.with_coefficients(k, twist_centre=tuple(about) if twist else None) if dist is not None else None)
 
 
 def assign(pred: np.ndarray, xy: np.ndarray, gate: float):

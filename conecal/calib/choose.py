@@ -19,7 +19,7 @@ from .bundle import FAMILIES, Bundle, Family, Observations, adjust
 
 
 def n_params(f: Family, n_frames: int) -> int:
-    return f.k + len(f.per_frame) * n_frames
+    return f.k + f.k_frame * n_frames
 
 
 def heldout_scores(family: Family, full: Bundle, obs: Observations, points, radius, folds: np.ndarray,

@@ -25,10 +25,11 @@ import numpy as np
 from ..documents.status import ambiguous, rejected
 from ..errors import FitError
 from ..geometry import rotvec_to_matrix
-from ..stats import not_worse
-from .bundle import FAMILIES, Bundle, Observations, adjust, family_named
+from .bundle import FAMILIES, Bundle, Family, Observations, adjust, family_named
+from .twist import seed_twists
+from .alternatives import centred_alternative, restarted_alternative
 from .camera import Camera
-from .choose import choose_family, choose_refinement, n_params, paired_heldout
+from .choose import choose_family, choose_refinement
 from .phantom import describe_phantom
 from .candidate import assign, refine_pose
 from .search import SearchOptions, search_frame
@@ -209,7 +210,8 @@ def calibrate_free(scan, markers: dict, geometry, opt: FreeOptions = FreeOptions
                         key=lambda fr: order.index(fr["frame"]))
     _mirrors(final, usable, obs, shape, radius, opt)
     if opt.distortion == "auto":
-        _centred_alternative(final, fits, choice, obs, shape, radius, cam, opt)
+        centred_alternative(final, fits, choice, obs, shape.points, radius, cam, opt.folds)
+        restarted_alternative(final, fits, choice, obs, shape.points, radius, cam, opt.folds)
     conv = sorted({fr["search"].convention for fr in frames if fr["search"].convention})
     return FreeResult(final.camera, final, frames, choice, shape, "; ".join(conv), fits, refinement, pinhole,
                       scales if rescaled else {})
@@ -273,7 +275,7 @@ def _fit_families(fams, cam, usable, dets, shape, radius, opt):
     base = adjust(family_named("none"), cam, obs, shape.points, radius, R0, t0, frame_intrinsics=fi)
     fits = {"none": base}
     for fam in fams[1:]:
-        fits[fam.name] = adjust(fam, cam, obs, shape.points, radius, R0, t0, start=base)
+        fits[fam.name] = adjust(fam, cam, obs, shape.points, radius, R0, t0, start=_nested(fam, fits, obs, shape))
     flexible = min(fits.values(), key=lambda b: float(np.mean(np.sum(b.residual_px ** 2, 1))))
     obs, kept = _regather(flexible, obs, usable, dets, shape, radius, opt)
     idx = [slots[fr["frame"]] for fr in kept]
@@ -282,10 +284,28 @@ def _fit_families(fams, cam, usable, dets, shape, radius, opt):
     for fam in fams[1:]:
         # a family the data hardly constrain (a per-frame twist on an undistorted
         # detector) creeps; 30 evaluations are enough to score it
-        fits[fam.name] = adjust(fam, cam, obs, shape.points, radius, R0, t0, start=fits["none"], max_nfev=30)
+        fits[fam.name] = adjust(fam, cam, obs, shape.points, radius, R0, t0, start=_nested(fam, fits, obs, shape),
+                                max_nfev=30)
     for s, fr in enumerate(kept):
         fr["slot"] = s
     return obs, fits, kept
+
+
+def _nested(fam: Family, fits: dict, obs: Observations, shape) -> Bundle:
+    """The fit to start ``fam`` from: the richest one already made of a family
+    nested in it (same model, no term it does not free), else the pinhole's;
+    for a family whose twist turns about a centre per frame, with each
+    frame's twist and centre seeded (``twist.seed_twists``)."""
+    def inside(f: Family) -> bool:
+        return (f.model == fam.model and set(f.shared) <= set(fam.shared) and set(f.per_frame) <= set(fam.per_frame)
+                and f.free_centre <= fam.free_centre and f.twist_centre <= fam.twist_centre)
+    nested = [b for b in fits.values() if b.family.model is not None and inside(b.family)]
+    if not nested:
+        return fits["none"]
+    start = max(nested, key=lambda b: (b.family.k_frame, b.family.k))
+    if fam.twist_centre and start.twist is None:
+        start = seed_twists(start, fam, obs, shape.points)
+    return start
 
 
 def _pairs(fr: dict):
@@ -427,36 +447,3 @@ def _rotation_sigma(b: Bundle, slot: int, axis: np.ndarray) -> float:
     """Sigma (rad) of frame ``slot``'s rotation about the lab ``axis`` (unit)."""
     C = b.covariance_of([f"frame{slot}_{n}" for n in ("rx", "ry", "rz")])
     return float(np.sqrt(max(axis @ C @ axis, 0.0)))
-
-
-CENTRED = "the chosen, principal point held at the detector centre"
-CENTRED_MARGIN = 0.02
-
-
-def _centred_alternative(final: Bundle, fits: dict, choice: list, obs: Observations, shape, radius, cam,
-                         opt: FreeOptions) -> None:
-    """A planar phantom seen from few directions, with a distortion about a free
-    centre, may not tell the principal point from the detector centre: the
-    chosen model refitted with it held there is scored on the same held-out
-    markers and listed in the choice; where held-out markers cannot tell it
-    from the free fit, its spread is part of the intrinsics' sigma (as a tied
-    family's is)."""
-    centred = adjust(final.family, cam, obs, shape.points, radius, None, None, start=final, centre_sigma=0.5)
-    p = paired_heldout(centred, final, obs, shape.points, radius, opt.folds)
-    fits[CENTRED] = centred
-    row = {"family": CENTRED, "parameters": n_params(final.family, len(final.R)), "heldout_rms_px": p["rms_a"],
-           "chosen": False, "behind_chosen_chi2": p["gain"], "behind_se": p["se"]}
-    # Held-out markers hardly see the principal point (the poses absorb it); the
-    # fit's own chi-square does, where the markers are at their noise. There a
-    # centred principal point it rejects (chi-square(2) beyond 6) is no
-    # alternative; where structure remains (reduced chi-square above 2) that
-    # test is not to be trusted, and held-out markers decide alone.
-    delta = (centred.fit.chi2 - final.fit.chi2) / final.covariance_scale
-    row["in_sample_delta_chi2"] = float(delta)
-    if final.fit.reduced_chi2 <= 2.0 and delta > 6.0:
-        row["why"] = "rejected by the fit's own chi-square: at the noise floor the principal point is measured"
-    else:
-        # tied also when it is behind by less than 2 % of the held-out chi-square:
-        # a difference that small is a matter of the folds, not of the recording
-        row["tied"] = bool(not_worse(p["gain"], p["se"]) or p["gain"] < CENTRED_MARGIN * p["chi2_b"])
-    choice.append(row)

@@ -72,9 +72,10 @@ def _own_terms(b: Bundle):
 
     def for_frame(raw: np.ndarray):
         def fit(R, t, sph, det, points, gate):
-            if len(sph) < 2 * len(free) + 4:      # (the pose's 6 and the terms from as many spheres)
+            if len(sph) < 2 * b.family.k_frame + 4:      # (the pose's 6 and the terms from as many spheres)
                 return R, t, dist.undistort(raw)
-            R, t, _, own = refine_pose_and_terms(cam, points[sph], raw[det], R, t, gate, dist, free)
+            R, t, _, own = refine_pose_and_terms(cam, points[sph], raw[det], R, t, gate, dist, free,
+                                                 b.family.twist_centre)
             return R, t, own.undistort(raw)
         return fit
     return for_frame

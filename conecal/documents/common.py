@@ -96,6 +96,7 @@ class Distortion(Doc):
     centre: Vec2
     radius_px: PositiveFloat
     degree: Annotated[int, Field(ge=0)] | None = None
+    twist_centre: Vec2 | None = None
     sigma: dict[str, Annotated[float, Field(ge=0, allow_inf_nan=False)] | None] | None = None
 
     @model_validator(mode="after")

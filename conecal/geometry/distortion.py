@@ -22,6 +22,10 @@ returns the design so that a fit can solve for them, or differentiate):
     about a centre moved by ``delta`` (normalised) adds to first order
     (``q = -s delta``): a field across the tube moves the twist's centre
     as the C-arm turns. Files written before q1, q2 existed read them as 0.
+    ``twist_centre`` (optional, px): the S twist turns about this point
+    instead of ``centre`` (exactly, to every order: the C-arm's own twist
+    centre, which a frame's entry holds; q1, q2 then stand for a static
+    decentring of their own).
 ``polynomial``
     ``dc, dr`` each a polynomial in ``d`` of total degree 2..n (the affine
     part is left out: a shift, scale, rotation or shear of the image is the
@@ -88,6 +92,7 @@ class Distortion:
     radius: float
     coefficients: tuple
     degree: int = 0
+    twist_centre: tuple | None = None
     names: tuple = field(init=False)
 
     def __post_init__(self):
@@ -108,19 +113,26 @@ class Distortion:
         if k.shape != (len(names),) or not np.isfinite(k).all():
             raise InputError(f"distortion {self.model}: needs {len(names)} finite coefficients ({', '.join(names)})")
         object.__setattr__(self, "centre", (float(c[0]), float(c[1])))
+        if self.twist_centre is not None:
+            tc = np.asarray(self.twist_centre, float)
+            if self.model != "radial_tangential" or tc.shape != (2,) or not np.isfinite(tc).all():
+                raise InputError(f"distortion: twist_centre must be two finite numbers (c, r) px of a "
+                                 f"radial_tangential model, not {self.twist_centre!r}")
+            object.__setattr__(self, "twist_centre", (float(tc[0]), float(tc[1])))
         object.__setattr__(self, "coefficients", tuple(float(v) for v in k))
         object.__setattr__(self, "names", names)
 
     # -- constructors -------------------------------------------------------
     @classmethod
-    def radial(cls, shape, *, centre=None, radius=None, **coeffs) -> "Distortion":
+    def radial(cls, shape, *, centre=None, radius=None, twist_centre=None, **coeffs) -> "Distortion":
         """A ``radial_tangential`` distortion for a detector of ``shape``;
         unnamed coefficients are zero."""
         bad = set(coeffs) - set(RADIAL_TERMS)
         if bad:
             raise InputError(f"distortion: unknown radial_tangential terms {sorted(bad)}")
         return cls("radial_tangential", centre if centre is not None else detector_centre(shape),
-                   radius or default_radius(shape), tuple(float(coeffs.get(n, 0.0)) for n in RADIAL_TERMS))
+                   radius or default_radius(shape), tuple(float(coeffs.get(n, 0.0)) for n in RADIAL_TERMS),
+                   twist_centre=twist_centre)
 
     @classmethod
     def polynomial(cls, shape, degree: int, coefficients=None, *, centre=None, radius=None) -> "Distortion":
@@ -129,16 +141,25 @@ class Distortion:
                    radius or default_radius(shape), tuple(np.zeros(n) if coefficients is None else coefficients),
                    degree=degree)
 
-    def with_coefficients(self, coefficients, centre=None) -> "Distortion":
+    def with_coefficients(self, coefficients, centre=None, twist_centre=None) -> "Distortion":
         return Distortion(self.model, self.centre if centre is None else centre, self.radius, tuple(coefficients),
-                          self.degree)
+                          self.degree, self.twist_centre if twist_centre is None else twist_centre)
 
     # -- the map ------------------------------------------------------------
     def _normalised(self, xy) -> np.ndarray:
         return (np.asarray(xy, float) - np.asarray(self.centre)) / self.radius
 
-    def basis(self, xy) -> np.ndarray:
-        """(..., 2, n) px per unit coefficient: ``displacement = basis @ coefficients``."""
+    def _twisted(self, xy, about):
+        """Normalised positions about the twist's centre: ``about`` (..., 2) px
+        if given (one per position: a bundle's frames), else this model's."""
+        if about is None:
+            about = self.twist_centre if self.twist_centre is not None else self.centre
+        u = (np.asarray(xy, float) - np.asarray(about, float)) / self.radius
+        return u[..., 0], u[..., 1]
+
+    def basis(self, xy, twist_about=None) -> np.ndarray:
+        """(..., 2, n) px per unit coefficient: ``displacement = basis @ coefficients``;
+        ``twist_about``: see ``_twisted``."""
         d = self._normalised(xy)
         x, y = d[..., 0], d[..., 1]
         if self.model == "radial_tangential":
@@ -151,7 +172,9 @@ class Distortion:
             B[..., 0, 2], B[..., 1, 2] = x * r4 * r2, y * r4 * r2          # k3
             B[..., 0, 3], B[..., 1, 3] = r2 + 2 * x * x, xy2               # p1
             B[..., 0, 4], B[..., 1, 4] = xy2, r2 + 2 * y * y               # p2
-            B[..., 0, 5], B[..., 1, 5] = -y * r2, x * r2                   # s
+            u, v = self._twisted(xy, twist_about)
+            w2 = u * u + v * v
+            B[..., 0, 5], B[..., 1, 5] = -v * w2, u * w2                   # s, about its own centre
             B[..., 0, 6], B[..., 1, 6] = -xy2, r2 + 2 * x * x              # q1: p1 turned
             B[..., 0, 7], B[..., 1, 7] = -(r2 + 2 * y * y), xy2            # q2: p2 turned
             return B
@@ -159,10 +182,10 @@ class Distortion:
         z = np.zeros_like(mono)
         return np.stack([np.concatenate([mono, z], -1), np.concatenate([z, mono], -1)], -2)
 
-    def basis_gradient(self, xy) -> np.ndarray:
+    def basis_gradient(self, xy, twist_about=None) -> np.ndarray:
         """(..., 2, n, 2): d basis / d position (per px); the displacement's
         gradient is this contracted with the coefficients, and its derivative
-        by the centre is minus that."""
+        by the centre (the twist's centre moved with it) is minus that."""
         d = self._normalised(xy)
         x, y = d[..., 0], d[..., 1]
         z = np.zeros_like(x)
@@ -176,8 +199,10 @@ class Distortion:
                 g[..., 1, t, 0], g[..., 1, t, 1] = xy2 * rm, rn + 2 * y * y * rm
             g[..., 0, 3, 0], g[..., 0, 3, 1], g[..., 1, 3, 0], g[..., 1, 3, 1] = 6 * x, 2 * y, 2 * y, 2 * x    # p1
             g[..., 0, 4, 0], g[..., 0, 4, 1], g[..., 1, 4, 0], g[..., 1, 4, 1] = 2 * y, 2 * x, 2 * x, 6 * y    # p2
-            g[..., 0, 5, 0], g[..., 0, 5, 1] = -xy2, -(r2 + 2 * y * y)                                         # s
-            g[..., 1, 5, 0], g[..., 1, 5, 1] = r2 + 2 * x * x, xy2
+            u, v = self._twisted(xy, twist_about)
+            w2, uv2 = u * u + v * v, 2 * u * v
+            g[..., 0, 5, 0], g[..., 0, 5, 1] = -uv2, -(w2 + 2 * v * v)                                         # s
+            g[..., 1, 5, 0], g[..., 1, 5, 1] = w2 + 2 * u * u, uv2
             g[..., 0, 6:8, :], g[..., 1, 6:8, :] = -g[..., 1, 3:5, :], g[..., 0, 3:5, :]                     # q1, q2
             return g / self.radius
         terms = poly_terms(int(self.degree))
@@ -206,7 +231,7 @@ class Distortion:
         return x
 
     def centre_jacobian(self, xy) -> np.ndarray:
-        """(..., 2, 2) d displacement / d centre (px/px)."""
+        """(..., 2, 2) d displacement / d centre (px/px), the twist's centre moved with it."""
         return -np.einsum("...inj,n->...ij", self.basis_gradient(xy), np.asarray(self.coefficients))
 
     def field(self, shape) -> tuple[np.ndarray, np.ndarray]:
@@ -224,6 +249,8 @@ class Distortion:
                "units": "px of displacement at the normalising radius; centre in px (column, row)"}
         if self.model == "polynomial":
             out["degree"] = int(self.degree)
+        if self.twist_centre is not None:
+            out["twist_centre"] = list(self.twist_centre)
         if sigma is not None:
             out["sigma"] = dict(zip(self.names, (float(s) for s in sigma)))
         return out
@@ -240,8 +267,9 @@ class Distortion:
             missing = missing_terms(model, degree, params)
             if missing:
                 raise InputError(f"{where}.parameters: missing {missing[0]!r}")
+            tc = d.get("twist_centre")
             return cls(model, tuple(d["centre"]), float(d["radius_px"]), tuple(float(params.get(n, 0.0)) for n in names),
-                       degree)
+                       degree, None if tc is None else tuple(tc))
         except KeyError as exc:
             raise InputError(f"{where}: missing key {exc.args[0]!r}") from None
         except (TypeError, ValueError) as exc:
@@ -249,4 +277,5 @@ class Distortion:
 
     def __repr__(self) -> str:
         terms = ", ".join(f"{n}={v:+.4g}" for n, v in zip(self.names, self.coefficients) if v)
-        return f"Distortion({self.model}, centre=({self.centre[0]:.1f}, {self.centre[1]:.1f}), {terms or 'zero'})"
+        tc = "" if self.twist_centre is None else f", twist about ({self.twist_centre[0]:.1f}, {self.twist_centre[1]:.1f})"
+        return f"Distortion({self.model}, centre=({self.centre[0]:.1f}, {self.centre[1]:.1f}){tc}, {terms or 'zero'})"
