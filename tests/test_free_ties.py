@@ -98,14 +98,35 @@ def test_the_second_looks_refit_of_a_right_labelling_reaches_the_noise_with_its_
     assert len(mine.sph) >= len(ids) - 1 and mine.xy is not None
 
 
-def _judged(rms, bar=0.0):
-    """Frames whose residuals have these RMS (px), judged; returns (dropped, limit, statuses)."""
+def _judged(rms, bar=0.0, res=None, overlap=None):
+    """Frames whose residuals have these RMS (px), 10 markers each (or residual
+    norms ``res`` (F, 10) px), judged; returns (dropped, limit, statuses)."""
+    if res is None:
+        res = np.repeat(np.array(rms)[:, None], 10, 1)
+    res = np.asarray(res, float).reshape(-1, 1) / np.sqrt(2) * np.ones((1, 2))
     slot = np.repeat(np.arange(len(rms)), 10)
-    res = np.repeat(np.array(rms)[:, None] / np.sqrt(2), 10, 0) * np.ones((1, 2))
     obs = Observations(slot, np.zeros(len(slot), int), np.zeros((len(slot), 2)), np.full(len(slot), 0.05))
     frames = [{"frame": k, "status": OK} for k in range(len(rms))]
-    dropped, limit = _judge(SimpleNamespace(residual_px=res), frames, obs, FreeOptions(), bar)
+    dropped, limit = _judge(SimpleNamespace(residual_px=res), frames, obs, FreeOptions(), bar,
+                            None if overlap is None else np.asarray(overlap).ravel())
     return dropped, limit, [f["status"].ok for f in frames]
+
+
+def test_a_frames_overlap_markers_are_set_aside_when_it_is_judged():
+    # five frames at 0.1 px; the last one's three overlap markers at 0.6 px
+    res = np.full((6, 10), 0.1)
+    res[5, :3] = 0.6
+    overlap = np.zeros((6, 10), bool)
+    overlap[5, :3] = True
+    rms = np.sqrt(np.mean(res ** 2, 1))                 # 0.34 px against a limit of 0.25
+    assert _judged(rms, res=res)[2][5] is False
+    dropped, _, ok = _judged(rms, res=res, overlap=overlap)
+    assert not dropped and all(ok)
+    # the same excess on markers that are not overlaps still fails
+    assert _judged(rms, res=res, overlap=np.roll(overlap, 3, axis=1))[2][5] is False
+    # a frame made of overlaps (fewer than 6 others) is judged on them all
+    overlap[5, :5] = True
+    assert _judged(rms, res=res, overlap=overlap)[2][5] is False
 
 
 def test_a_rejected_frame_does_not_lower_the_limit_the_next_one_is_held_to():
