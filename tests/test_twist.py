@@ -4,13 +4,18 @@ written out by hand here (not through the model's basis)."""
 
 from __future__ import annotations
 
+import json
+
 import numpy as np
+import tifffile
+from click.testing import CliRunner
 
 from conecal.calib.alternatives import RESTARTED, restarted_alternative
 from conecal.calib.bundle import Observations, adjust, family_named
 from conecal.calib.camera import Camera
 from conecal.calib.candidate import refine_pose_and_terms
 from conecal.calib.twist import seed_twists
+from conecal.cli.main import cli
 from conecal.documents.common import Distortion as DistortionDoc
 from conecal.geometry import ConeGeometry, rotvec_to_matrix
 from conecal.geometry.distortion import Distortion
@@ -138,3 +143,23 @@ def test_a_twist_familys_restart_is_listed_and_other_families_have_none():
     (row,) = choice
     assert row["family"] == RESTARTED and fits[RESTARTED].family is fam
     assert ("tied" in row) != ("why" in row) and np.isfinite(row["behind_chosen_chi2"])
+
+
+def test_a_twist_about_its_own_centre_is_written_per_frame_and_exported(tmp_path):
+    from test_free_pose import _free_scan       # (the tests folder is on the path)
+    d, mdoc, sc = _free_scan(tmp_path, n=8)
+    (tmp_path / "m.json").write_text(json.dumps(mdoc))
+    r = CliRunner().invoke(cli, ["fit-pose", str(d), "--markers", str(tmp_path / "m.json"), "-o",
+                                 str(tmp_path / "p.json"), "--distortion",
+                                 "radial+tangential, S and its centre per frame"])
+    assert r.exit_code == 0, r.output
+    doc = json.loads((tmp_path / "p.json").read_text())
+    assert "twist centre" in doc["gauge"] and "twist_centre" not in doc["distortion"]
+    ok = [f for f in doc["frames"] if f["status"] == "ok"]
+    assert ok and all(len(f["distortion"]["twist_centre"]) == 2 for f in ok)
+    r = CliRunner().invoke(cli, ["export", str(tmp_path / "p.json"), "--format", "distortion", "-o",
+                                 str(tmp_path / "d.tif")])
+    assert r.exit_code == 0, r.output
+    pages = tifffile.imread(tmp_path / "d.tif")
+    last = Distortion.from_dict(ok[-1]["distortion"])
+    assert np.allclose(pages[2 * len(ok) - 2], last.field(SHAPE)[0], atol=1e-4)

@@ -31,6 +31,12 @@ GAUGE = ("lab frame = the imaging system's: source at (0, 0, -sod) with the nomi
          "to the principal point, sdd and poses); a refined phantom (phantom_refinement) keeps its CAD "
          "frame through the offsets' prior: a rigid motion or scaling of the whole phantom is the poses'")
 
+# added where the chosen family turns each frame's twist about its own centre
+TWIST_GAUGE = ("; a frame's twist centre and the shared q1, q2 trade at first order (twist centre offset "
+               "delta_k + c / s_k with q + c leaves the field unchanged): their split is held by the twist "
+               "centres' prior (sigma half the normalising radius about the distortion centre), and the field "
+               "a frame's distortion entry gives is what is measured, not its parts")
+
 
 def _tied(res: FreeResult) -> list[Bundle]:
     out = []
@@ -140,7 +146,7 @@ def free_document(res: FreeResult, opt: FreeOptions, header: dict) -> dict:
     rms = float(np.sqrt(np.mean(np.concatenate(ok_res)))) if ok_res else float("nan")
     geo = b.camera.geometry().to_dict()
     doc = {**header, "motion": "free", **geo, "axes": [], "intrinsics": intr, "distortion": dist,
-           "gauge": GAUGE, "distortion_choice": res.choice, "phantom_refinement": _refinement(res),
+           "gauge": GAUGE + (TWIST_GAUGE if b.family.twist_centre else ""), "distortion_choice": res.choice, "phantom_refinement": _refinement(res),
            "marker_sigma_scale": res.sigma_scales,
            "phantom": {"planar": bool(res.shape.planar), "lattice": res.shape.lattice is not None,
                        "symmetries": len(res.shape.symmetries)},
