@@ -44,9 +44,21 @@ def render(shape, spheres: np.ndarray, blur: float, jacobian: bool = False):
     return model, J
 
 
+# OpenCV filters at most this many channels at once (128 in OpenCV 5, 512 in
+# 4.x): a group of more than 32 spheres has 4 derivative channels each
+_CHANNELS = 128
+
+
 def _blur(f: np.ndarray, blur: float) -> np.ndarray:
-    """The system's Gaussian blur (sigma ``blur`` px) of pixel field(s) ``f``."""
-    return cv2.GaussianBlur(f, (0, 0), blur, borderType=cv2.BORDER_REPLICATE) if blur > 0.05 and f.size else f
+    """The system's Gaussian blur (sigma ``blur`` px) of pixel field(s) ``f``
+    (rows, cols[, channels])."""
+    if not (blur > 0.05 and f.size):
+        return f
+    if f.ndim < 3 or f.shape[2] <= _CHANNELS:
+        return cv2.GaussianBlur(f, (0, 0), blur, borderType=cv2.BORDER_REPLICATE)
+    return np.concatenate([cv2.GaussianBlur(np.ascontiguousarray(f[..., i:i + _CHANNELS]), (0, 0), blur,
+                                            borderType=cv2.BORDER_REPLICATE).reshape(f.shape[0], f.shape[1], -1)
+                           for i in range(0, f.shape[2], _CHANNELS)], axis=2)
 
 
 def render_box(box, spheres: np.ndarray, blur: float) -> np.ndarray:
