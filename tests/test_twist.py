@@ -42,6 +42,24 @@ def _ball(rng, n=40):
     return 30.0 * p / np.linalg.norm(p, axis=1, keepdims=True) * rng.uniform(0.3, 1.0, (n, 1))
 
 
+def _poses(rng, F):
+    """F random poses: R (F, 3, 3) within 40 deg per axis, t (F, 3) mm."""
+    R = np.stack([rotvec_to_matrix(np.deg2rad(rng.uniform(-40, 40, 3))) for _ in range(F)])
+    return R, rng.normal(0, 5, (F, 3))
+
+
+def _seen(rng, cam, R, t, p, s, about, noise):
+    """Every point of ``p`` (n, 3) in every frame, twisted by ``s`` about
+    ``about`` (per frame or one for all) with Gaussian ``noise`` px: slot,
+    point index, measured (N, 2) px."""
+    F = len(R)
+    slot = np.repeat(np.arange(F), len(p))
+    sph = np.tile(np.arange(len(p)), F)
+    q = cam.project(np.einsum("nij,nj->ni", R[slot], p[sph]) + t[slot])
+    s, about = np.broadcast_to(s, (F,)), np.broadcast_to(about, (F, 2))
+    return slot, sph, q + _twist(q, s[slot, None], about[slot]) + rng.normal(0, noise, q.shape)
+
+
 def test_twist_turns_about_its_own_centre_and_round_trips():
     about = np.array([330.0, 190.0])
     d = Distortion.radial(SHAPE, k1=1.5, s=2.0, twist_centre=tuple(about))
@@ -85,18 +103,10 @@ def test_the_bundle_fits_each_frames_twist_and_predicts_held_out_points():
     cam = _camera()
     pts = _ball(rng, 30)
     F = 6
-    R = np.stack([rotvec_to_matrix(np.deg2rad(rng.uniform(-40, 40, 3))) for _ in range(F)])
-    t = rng.normal(0, 5, (F, 3))
+    R, t = _poses(rng, F)
     s = rng.uniform(3.0, 8.0, F)
     about = np.array([255.5, 255.5]) + rng.uniform(-120, 120, (F, 2))
-
-    def measured(p, noise):
-        slot = np.repeat(np.arange(F), len(p))
-        sph = np.tile(np.arange(len(p)), F)
-        q = cam.project(np.einsum("nij,nj->ni", R[slot], p[sph]) + t[slot])
-        return slot, sph, q + _twist(q, s[slot, None], about[slot]) + rng.normal(0, noise, q.shape)
-
-    slot, sph, xy = measured(pts, 0.02)
+    slot, sph, xy = _seen(rng, cam, R, t, pts, s, about, 0.02)
     obs = Observations(slot, sph, xy, np.full(len(slot), 0.02))
     # as fit-pose goes: the pinhole, a family nested in it with S per frame,
     # each frame's twist and centre seeded from it, then the family itself
@@ -110,7 +120,7 @@ def test_the_bundle_fits_each_frames_twist_and_predicts_held_out_points():
     # between the shared decentring q and a frame's twist centre is measured
     # only at second order; the field they make together is what counts)
     held = _ball(rng, 20)
-    hslot, hsph, truth = measured(held, 0.0)
+    hslot, hsph, truth = _seen(rng, cam, R, t, held, s, about, 0.0)
     err = b.predict(held[hsph], hslot) - truth
     assert float(np.sqrt(np.mean(np.sum(err ** 2, 1)))) < 0.05
     # without the twist's centre the same markers are left well above their noise
@@ -124,14 +134,9 @@ def test_a_twist_familys_restart_is_listed_and_other_families_have_none():
     rng = np.random.default_rng(4)
     cam = _camera()
     pts = _ball(rng, 25)
-    F = 4
-    R = np.stack([rotvec_to_matrix(np.deg2rad(rng.uniform(-40, 40, 3))) for _ in range(F)])
-    t = rng.normal(0, 5, (F, 3))
-    slot = np.repeat(np.arange(F), len(pts))
-    sph = np.tile(np.arange(len(pts)), F)
-    q = cam.project(np.einsum("nij,nj->ni", R[slot], pts[sph]) + t[slot])
-    about = np.array([300.0, 200.0])
-    obs = Observations(slot, sph, q + _twist(q, 5.0, about) + rng.normal(0, 0.02, q.shape), np.full(len(slot), 0.02))
+    R, t = _poses(rng, 4)
+    slot, sph, xy = _seen(rng, cam, R, t, pts, 5.0, np.array([300.0, 200.0]), 0.02)
+    obs = Observations(slot, sph, xy, np.full(len(slot), 0.02))
     fits = {"none": adjust(family_named("none"), cam, obs, pts, 0.0, R, t)}
     plain = adjust(family_named("radial+S per frame"), cam, obs, pts, 0.0, R, t, start=fits["none"])
     choice = []

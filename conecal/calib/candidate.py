@@ -15,6 +15,10 @@ from ..geometry.rotations import skew
 from .camera import Camera
 
 
+# how far (normalised) a frame's twist centre may move in one refit
+TWIST_REACH = 0.5
+
+
 @dataclass
 class Candidate:
     det: np.ndarray            # detection indices
@@ -51,8 +55,7 @@ def refine_pose_and_terms(cam: Camera, P: np.ndarray, xy: np.ndarray, R, t, f_sc
     free = list(free)
     nf = len(free)
     k0 = np.asarray(dist.coefficients, float) if dist is not None else None
-    about0 = np.asarray(dist.twist_centre if dist is not None and dist.twist_centre is not None else
-                        (dist.centre if dist is not None else (0.0, 0.0)), float)
+    about0 = np.asarray(dist.twist_centre or dist.centre, float) if twist else None
     i_s = dist.names.index("s") if twist else None
 
     def split(x):
@@ -86,9 +89,9 @@ def refine_pose_and_terms(cam: Camera, P: np.ndarray, xy: np.ndarray, R, t, f_sc
         return J.reshape(-1, len(x))
 
     x0 = np.concatenate([np.zeros(6), k0[free] if dist is not None else [], np.zeros(2 * twist)])
-    # the twist's centre within half the detector's half-diagonal of where it
-    # starts: where the twist is weak a far centre is a second, false minimum
-    reach = np.full(2 * twist, 0.5 * dist.radius if twist else 0.0)
+    # the twist's centre within TWIST_REACH of the normalising radius of where
+    # it starts: where the twist is weak a far centre is a second, false minimum
+    reach = np.full(2 * twist, TWIST_REACH * dist.radius if twist else 0.0)
     lo = np.concatenate([np.full(len(x0) - reach.size, -np.inf), -reach])
     sol = least_squares(fun, x0, jac=jac, loss="soft_l1", f_scale=f_scale, max_nfev=50, bounds=(lo, -lo),
                         x_scale=np.concatenate([[1e-2, 1e-2, 1e-2, 1.0, 1.0, 1.0], np.full(nf, 0.1),

@@ -18,11 +18,7 @@ from dataclasses import replace
 import numpy as np
 
 from .bundle import Bundle, Family, Observations
-from .candidate import refine_pose_and_terms
-
-# how far a seeded twist centre may lie from the shared centre (normalised):
-# the reach refine_pose_and_terms allows a frame's twist centre
-REACH = 0.5
+from .candidate import TWIST_REACH, refine_pose_and_terms
 
 
 def seed_twists(b: Bundle, fam: Family, obs: Observations, points: np.ndarray) -> Bundle:
@@ -53,7 +49,7 @@ def seed_twists(b: Bundle, fam: Family, obs: Observations, points: np.ndarray) -
         sk = lin.coefficients[i_s]
         if abs(sk) > 1e-6:
             delta = -(np.array(lin.coefficients)[i_q] - np.array(dist.coefficients)[i_q]) / sk
-            delta *= min(1.0, REACH / max(float(np.linalg.norm(delta)), 1e-12))
+            delta *= min(1.0, TWIST_REACH / max(float(np.linalg.norm(delta)), 1e-12))
             k0 = np.array(dist.coefficients)
             k0[i_s] = sk
             starts.append((dist.with_coefficients(k0, twist_centre=tuple(np.array(dist.centre) + delta * dist.radius)),

@@ -149,11 +149,14 @@ class Distortion:
     def _normalised(self, xy) -> np.ndarray:
         return (np.asarray(xy, float) - np.asarray(self.centre)) / self.radius
 
-    def _twisted(self, xy, about):
+    def _twisted(self, xy, about, x, y):
         """Normalised positions about the twist's centre: ``about`` (..., 2) px
-        if given (one per position: a bundle's frames), else this model's."""
+        if given (one per position: a bundle's frames), else this model's;
+        ``x, y``: the positions about ``centre``, which they are without one."""
         if about is None:
-            about = self.twist_centre if self.twist_centre is not None else self.centre
+            if self.twist_centre is None:
+                return x, y
+            about = self.twist_centre
         u = (np.asarray(xy, float) - np.asarray(about, float)) / self.radius
         return u[..., 0], u[..., 1]
 
@@ -172,7 +175,7 @@ class Distortion:
             B[..., 0, 2], B[..., 1, 2] = x * r4 * r2, y * r4 * r2          # k3
             B[..., 0, 3], B[..., 1, 3] = r2 + 2 * x * x, xy2               # p1
             B[..., 0, 4], B[..., 1, 4] = xy2, r2 + 2 * y * y               # p2
-            u, v = self._twisted(xy, twist_about)
+            u, v = self._twisted(xy, twist_about, x, y)
             w2 = u * u + v * v
             B[..., 0, 5], B[..., 1, 5] = -v * w2, u * w2                   # s, about its own centre
             B[..., 0, 6], B[..., 1, 6] = -xy2, r2 + 2 * x * x              # q1: p1 turned
@@ -199,7 +202,7 @@ class Distortion:
                 g[..., 1, t, 0], g[..., 1, t, 1] = xy2 * rm, rn + 2 * y * y * rm
             g[..., 0, 3, 0], g[..., 0, 3, 1], g[..., 1, 3, 0], g[..., 1, 3, 1] = 6 * x, 2 * y, 2 * y, 2 * x    # p1
             g[..., 0, 4, 0], g[..., 0, 4, 1], g[..., 1, 4, 0], g[..., 1, 4, 1] = 2 * y, 2 * x, 2 * x, 6 * y    # p2
-            u, v = self._twisted(xy, twist_about)
+            u, v = self._twisted(xy, twist_about, x, y)
             w2, uv2 = u * u + v * v, 2 * u * v
             g[..., 0, 5, 0], g[..., 0, 5, 1] = -uv2, -(w2 + 2 * v * v)                                         # s
             g[..., 1, 5, 0], g[..., 1, 5, 1] = w2 + 2 * u * u, uv2
