@@ -53,6 +53,33 @@ def test_a_grid_corner_moved_beyond_the_gate_still_names_the_grid():
     assert not search_frame(cam, shape, xy).status.ok
 
 
+def test_a_grid_seen_nearly_edge_on_is_named_among_the_turns_of_what_the_vote_found(monkeypatch):
+    """An 8x8 grid with 3 holes tilted 80 deg: where its image lattice does
+    not grow, the orientation vote may offer only labellings turned by a
+    symmetry of the lattice (not of the phantom), which fit the image as well
+    as the right one and name fewer spheres; the right one is among their
+    turns, and names every sphere."""
+    import conecal.calib.search as search
+    from conecal.calib.lattice import turned
+    cam = _camera()
+    pts = grid_phantom(8, pitch=8.0)
+    pts = np.delete(pts, [5, 18, 43], axis=0)
+    shape = describe_phantom(pts, np.arange(len(pts)))
+    R = rotvec_to_matrix(np.deg2rad([80.0, 0.0, 0.0])) @ rotvec_to_matrix(np.deg2rad([0.0, 0.0, 7.0]))
+    t = np.array([1.0, -2.0, 0.0])
+    xy = cam.project(shape.points @ R.T + t)
+    xy += np.random.default_rng(4).normal(0, 0.05, xy.shape)
+    right = Candidate(np.arange(len(xy)), np.arange(len(xy)), R, t, how="vote")
+    wrong = turned(shape, shape.points, right)
+    assert wrong
+    monkeypatch.setattr(search, "planar_candidates", lambda *a: [])
+    monkeypatch.setattr(search, "voted_candidates", lambda *a, **k: list(wrong))
+    res = search_frame(cam, shape, xy)
+    assert res.status.ok, res.status
+    assert len(res.best.sph) == len(xy)
+    assert np.array_equal(res.best.sph, res.best.det)
+
+
 # a family with per-frame terms, and what a frame's own terms are against the bundle's median
 TWISTS = [("radial+S+tangential, S per frame", dict(s=12.0)),
           ("radial+tangential, S and its centre per frame", dict(s=4.0, twist_centre=(330.0, 200.0)))]

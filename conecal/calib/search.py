@@ -23,7 +23,7 @@ from ..documents.status import OK, Status, ambiguous, rejected
 from ..geometry import matrix_to_rotvec
 from .camera import Camera
 from .candidate import Candidate, assign, refine_pose
-from .lattice import planar_candidates
+from .lattice import planar_candidates, turned
 from .phantom import PhantomShape, symmetry_name
 from .vote import voted_candidates
 
@@ -155,6 +155,7 @@ def search_frame(cam: Camera, shape: PhantomShape, xy: np.ndarray, guess=None,
     if len(xy) < opt.min_spheres:
         return SearchResult(rejected("few_markers", f"{len(xy)} markers usable, fewer than {opt.min_spheres}"))
     raw = planar_candidates(cam, shape, xy) if shape.lattice is not None else []
+    voted_grid = shape.lattice is not None and not raw
     if not raw:
         raw = voted_candidates(cam, shape, xy, guess, opt.n_orientations, depth=opt.depth_mm)
         if guess is not None and not raw:
@@ -166,6 +167,15 @@ def search_frame(cam: Camera, shape: PhantomShape, xy: np.ndarray, guess=None,
         more = voted_candidates(cam, shape, xy, None, 3 * opt.n_orientations, seed=11, depth=opt.depth_mm)
         cands += [c for c in (_polish(cam, shape, xy, c, gates=(3 * opt.gate_px, opt.gate_px)) for c in more)
                   if len(c.sph) >= 4 and np.isfinite(c.rms_px)]
+    if voted_grid and cands:
+        # (a grid seen nearly edge-on, whose image lattice did not grow: the
+        # turns of its lattice map it onto itself, so the vote may find only
+        # a turned labelling of the right pose -- an independent renderer's
+        # grid with 3 holes at 81 deg, 54 spheres all named wrong at 0.44 px;
+        # the right one, among its turns, names 56)
+        top = min(cands, key=lambda c: (-c.score, c.rms_px))
+        cands += [c for c in (_polish(cam, shape, xy, c, gates=(3 * opt.gate_px, opt.gate_px))
+                              for c in turned(shape, shape.points, top)) if len(c.sph) >= 4 and np.isfinite(c.rms_px)]
     if cands:
         cands = _tighten(cam, shape, xy, cands, opt.gate_floor_px)
     cands = [c for c in cands if len(c.sph) >= opt.min_spheres and np.isfinite(c.rms_px)]
