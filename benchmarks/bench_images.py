@@ -20,6 +20,13 @@ held-out 3-D points' RMS (carried through the symmetry a frame was labelled by).
 ``--gen carm_images2``: a second renderer, written by another helper session
 without conecal's code (a helix cylinder and grids on a flat panel and an
 intensifier, multi-page flats, a flat black outside the intensifier's field).
+``--gen carm_images3``: a third, by a third helper session from the scan
+contract alone (a coded helix of 1.6 and 3.2 mm beads declared by the
+smaller, a two-plate cage on an 8-bit log display with JPEG q70 and the
+nominal magnification 20 % off, a grid beside a plate's edge and an
+aluminium wedge on a flat panel, a grid under a local dent of the input
+screen, a cube's corners; per-frame cubic or tangent-twist distortion fields;
+glare beyond the intensifier's field in the flat).
 
     python benchmarks/bench_images.py [--cases ball3d_ii grid_ii] [--seeds 1 2]
 """
@@ -168,7 +175,7 @@ def main(argv=None) -> int:
     ap.add_argument("--cases", nargs="*")
     ap.add_argument("--seeds", type=int, nargs="*", default=[1])
     ap.add_argument("--work", type=Path, help="keep the cases here (default: a temporary folder)")
-    ap.add_argument("--gen", default="carm_images", help="renderer module in benchmarks/ (carm_images, carm_images2)")
+    ap.add_argument("--gen", default="carm_images", help="renderer module in benchmarks/ (carm_images, carm_images2, carm_images3)")
     ap.add_argument("--reuse", action="store_true",
                     help="with --work: fit the markers an earlier run left there (no rendering, no detect)")
     a = ap.parse_args(argv)

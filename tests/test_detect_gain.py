@@ -2,12 +2,14 @@
 image stored as transmission): the scan's gain eta, and sigmas that cover
 the centroid shift a background slope then causes."""
 
+from dataclasses import replace
+
 import numpy as np
 
 from conecal.detect.crowded import detect_frame
 from conecal.detect.frame import Blob, DetectOptions
 from conecal.detect.ring import ring_mask
-from conecal.detect.gain import measure_gain, with_background, with_gain_sigma
+from conecal.detect.gain import linearised, measure_gain, response_lambda, with_background, with_gain_sigma
 from conecal.detect.noise import noise_correlation, noise_pixel
 
 
@@ -106,3 +108,48 @@ def test_sigma_covers_the_shift_a_display_image_gives_a_shadow_on_a_slope():
     # up to twice the gain the centroid sees; an upper bound)
     assert np.std(before) > 1.4
     assert 0.6 < np.std(after) < 1.3, (np.std(before), np.std(after))
+
+
+def test_a_display_images_response_is_measured_and_its_shadows_then_read_true():
+    """On a log display stored as transmission (T linear in the line
+    integral) lambda = 1 makes the shadows add; measured from the shadows'
+    central chords against their background, and a frame measured through
+    it has its centroids where the spheres are (in attenuation, each is
+    pulled up the background's slope)."""
+    rng = np.random.default_rng(5)
+    frames, truth = zip(*[_display_frame(rng) for _ in range(2)])
+    opt = DetectOptions(diameter_px=(12.0, 20.0), blur_px=0.8, pixel_noise=noise_pixel(frames[0]),
+                        noise_kappa=noise_correlation(frames[0]))
+    found = [with_background(f, detect_frame(f, opt), opt) for f in frames]
+    lam = response_lambda(found)
+    assert 0.8 < lam < 1.2, lam
+
+    def errors(res):
+        e = []
+        for blobs, cs in zip(res, truth):
+            for b in blobs:
+                d = [np.hypot(b.x - x, b.y - y) for x, y in cs]
+                if min(d) < 3:
+                    e.append(min(d))
+        return np.array(e)
+
+    lin = [linearised(f, lam) for f in frames]
+    opt_l = replace(opt, pixel_noise=noise_pixel(lin[0]), noise_kappa=noise_correlation(lin[0]))
+    before, after = errors(found), errors([detect_frame(f, opt_l) for f in lin])
+    assert len(after) >= len(before) >= 2 * 40
+    rms = lambda e: float(np.sqrt(np.mean(e ** 2)))  # noqa: E731
+    assert rms(after) < 0.5 * rms(before), (rms(before), rms(after))   # 0.082 -> 0.027 px
+    # in attenuation the same shadows read no gain: nothing to linearise
+    again = [with_background(f, detect_frame(f, opt_l), opt_l) for f in lin]
+    assert response_lambda(again) == 0.0
+
+
+def test_no_response_is_claimed_where_the_shadows_add_or_the_beam_hardens():
+    rng = np.random.default_rng(1)
+    assert response_lambda(_blobs(rng, 0.0)) == 0.0
+    assert response_lambda(_blobs(rng, -1.0)) == 0.0      # hardened behind thicker material
+    assert response_lambda(_blobs(rng, 2.0, n_frames=1, n=10)) == 0.0   # too few to tell
+    # a gain no lambda within reach takes away is no display's curve either
+    # (a steep slope over a background that hardly varies)
+    flat = [[replace(b, bg=b.bg / 20, mu_px=b.mu_px * np.exp(19 * b.bg / 20)) for b in res] for res in _blobs(rng, 0.0)]
+    assert measure_gain(flat).significant and response_lambda(flat) == 0.0

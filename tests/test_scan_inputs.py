@@ -228,6 +228,21 @@ def test_an_intensifiers_dark_surround_in_the_flat_reads_as_no_transmission(tmp_
     assert "not brighter than the dark image" in res.output
 
 
+def test_an_intensifiers_glare_rim_in_the_flat_reads_as_no_transmission(tmp_path):
+    """Beyond the field the flat holds only glare, a sixth of the field's
+    signal: a frame's noise divided by it is no transmission (it read as
+    speckle of hundreds of touching shadows)."""
+    yy, xx = np.mgrid[0:40, 0:40]
+    inside = np.hypot(xx - 19.5, yy - 19.5) < 18
+    flat = np.where(inside, 220, 40).astype(np.uint8)
+    noise = np.random.default_rng(0).integers(-8, 9, (3, 40, 40))
+    frames = (np.where(inside, 110, 40)[None] + noise).astype(np.uint8)
+    s = load_scan(_raw_scan(tmp_path, frames, flat, np.zeros((40, 40), np.uint8)))
+    a = s.stack.read(0)
+    assert s.stack.dead_pixels == int((~inside).sum())
+    assert (a[~inside] > 10).all() and (a[inside] < 1.5).all()
+
+
 def test_a_flat_darker_than_the_dark_almost_everywhere_is_bad_input(tmp_path):
     frames = np.full((3, 20, 20), 100, np.uint16)
     d = _raw_scan(tmp_path, frames, np.full((20, 20), 50, np.uint16), np.full((20, 20), 60, np.uint16))

@@ -47,7 +47,8 @@ def command(scan, output, workers, threshold, blur_px, diameter_px, lag, frame_r
     if s.stack.dead_pixels:
         n = s.stack.dead_pixels
         info(f"{s.config.flat}: {n} pixels ({n / (s.config.detector.rows * s.config.detector.cols):.0%}) are not "
-             f"brighter than the dark image (an intensifier's dark surround?): read as no transmission")
+             f"brighter than the dark image by a quarter of the open field's signal (an intensifier's dark "
+             f"surround?): read as no transmission")
     if diameter_px is not None and not 0 < diameter_px[0] < diameter_px[1]:
         raise click.BadParameter("need 0 < MIN < MAX", param_hint="--diameter-px")
     opt = options_for_scan(s, threshold=threshold, blur_px=blur_px, diameter_px=diameter_px)

@@ -83,6 +83,9 @@ class DetectOptions:
     shadow_px: tuple[float, ...] = ()
     # measured over nominal shadow size (:mod:`conecal.detect.size`; 0: not measured)
     size_scale: float = 0.0
+    # the image's response, measured once per scan (:func:`conecal.detect.gain.response_lambda`):
+    # frames are measured in (1 - exp(-lambda a)) / lambda; 0: in attenuation a; None: not measured
+    response_lambda: float | None = None
 
     @property
     def factor(self) -> int:

@@ -26,6 +26,10 @@ from .frame import window_reach
 from .kernels import chord_patch
 
 _SS = 3     # samples per pixel and axis
+# the most Jacobian entries a joint fit holds (160 MB as float64): a touching
+# group of 60 spheres on a 230 px patch has 1.3e7; speckle read as hundreds of
+# touching shadows across a frame asked for 1e9
+_MAX_ENTRIES = 2e7
 
 
 def render(shape, spheres: np.ndarray, blur: float, jacobian: bool = False):
@@ -108,9 +112,9 @@ def fit_group(a: np.ndarray, spheres: np.ndarray, blur: float, noise: float, mas
     """Fit spheres (k, 4) jointly on ``a`` around them (on ``box``, else
     :func:`group_box`); returns (box, fitted (k, 4), sigma (k, 4), background
     coefficients (a plane, or with ``quadratic`` a quadratic surface), chi2,
-    n pixels) or None."""
+    n pixels) or None (also for a group too large to hold, ``_MAX_ENTRIES``)."""
     c0, q0, c1, q1 = box if box is not None else group_box(a.shape, spheres, blur)
-    if c1 - c0 < 6 or q1 - q0 < 6:
+    if c1 - c0 < 6 or q1 - q0 < 6 or (c1 - c0) * (q1 - q0) * (4 * len(spheres) + 6) > _MAX_ENTRIES:
         return None
     roi = a[q0:q1, c0:c1].astype(np.float64)
     h, w = roi.shape

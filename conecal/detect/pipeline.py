@@ -15,7 +15,7 @@ from ..scan import Scan
 from . import kernels
 from .crowded import detect_frame
 from .frame import DetectOptions, NonFiniteFrame
-from .gain import with_gain_sigma, with_background
+from .gain import MIN_ALONE, linearised, response_lambda, with_background, with_gain_sigma
 from .noise import noise_correlation, noise_pixel, noise_small
 from .peaks import small_frame
 from .size import MIN_SHADOWS, measured_size
@@ -125,32 +125,72 @@ def scan_options(scan: Scan, opt: DetectOptions) -> DetectOptions:
     uses the same: the sizes looked for follow the measured ones when the
     nominal magnification was off (:func:`conecal.detect.size.measured_size`)."""
     frames_idx = [int(f) for f in scan.log.frame]
-    if not frames_idx or (opt.pixel_noise and (opt.size_scale or not opt.shadow_px)):
+    if not frames_idx or (opt.pixel_noise and (opt.size_scale or not opt.shadow_px)
+                          and opt.response_lambda is not None):
         return opt
     scan.stack.read(frames_idx[0], check=False)   # a bad stack is named at its first frame
     mid = scan.stack.read(frames_idx[len(frames_idx) // 2], check=False)
     if not np.isfinite(mid).all():
         return opt
-    if not opt.pixel_noise:
+    noise_here = not opt.pixel_noise
+    if noise_here:
         # JPEG, 8-bit or scintillator-blurred frames: noise correlated over a
         # few px, which neighbour differences miss (then every marker looked
         # like clutter)
         opt = replace(opt, pixel_noise=noise_pixel(mid), noise_kappa=noise_correlation(mid),
                       noise_reference=noise_small(small_frame(mid, opt)) * opt.factor)
+    # the frames measured so far (page -> blobs), in the order they were read
+    seen = {}
+    if opt.response_lambda is None:
+        lam = _response(scan, frames_idx, mid, opt, seen)
+        opt = replace(opt, response_lambda=lam)
+        if lam:
+            # (the shadows were found in attenuation: measured again as the frames will be)
+            seen = {}
+            mid = linearised(mid, lam)
+            if opt.max_attenuation is not None:
+                # (the same pixels: the response is monotonic)
+                opt = replace(opt, max_attenuation=linearised(opt.max_attenuation, lam))
+            if noise_here:
+                opt = replace(opt, pixel_noise=noise_pixel(mid), noise_kappa=noise_correlation(mid),
+                              noise_reference=noise_small(small_frame(mid, opt)) * opt.factor)
     if opt.shadow_px and not opt.size_scale:
         # the middle frame's shadows, and a quarter's either side of it while too few
-        blobs = detect_frame(mid, opt)
+        def shadows(q):
+            k = frames_idx[q * len(frames_idx) // 4]
+            if k not in seen:
+                a = mid if q == 2 else linearised(scan.stack.read(k, check=False), opt.response_lambda)
+                seen[k] = detect_frame(a, opt) if np.isfinite(a).all() else []
+            return seen[k]
+        blobs = shadows(2)
         for q in (1, 3):
             if len(blobs) >= MIN_SHADOWS or len(frames_idx) < 4:
                 break
-            more = scan.stack.read(frames_idx[q * len(frames_idx) // 4], check=False)
-            if np.isfinite(more).all():
-                blobs = blobs + detect_frame(more, opt)
+            blobs = blobs + shadows(q)
         sized = measured_size(blobs, opt)
         if sized.factor != opt.factor:
             sized = replace(sized, noise_reference=noise_small(small_frame(mid, sized)) * sized.factor)
         opt = sized
     return opt
+
+
+def _response(scan: Scan, frames_idx: list[int], mid: np.ndarray, opt: DetectOptions, seen: dict) -> float:
+    """:func:`conecal.detect.gain.response_lambda` from the middle frame's
+    shadows and, while fewer than twice the markers it needs stand alone,
+    the quarter frames' and the eighth frames' (filling ``seen``: page ->
+    blobs found in attenuation)."""
+    order = [2 * len(frames_idx) // 4] + [q * len(frames_idx) // 8 for q in (2, 6, 1, 3, 5, 7)]
+    results = []
+    for n, i in enumerate(dict.fromkeys(order)):
+        if sum(len(r) for r in results) >= 2 * MIN_ALONE or (n and len(frames_idx) < 4):
+            break
+        k = frames_idx[i]
+        a = mid if n == 0 else scan.stack.read(k, check=False)
+        if not np.isfinite(a).all():
+            continue
+        seen[k] = detect_frame(a, opt)
+        results.append([b for b in with_background(a, seen[k], opt) if not b.flags or b.flags == ["clutter"]])
+    return response_lambda(results)
 
 
 def measure_frames(scan: Scan, opt: DetectOptions, frames_idx: list[int], *, workers: int = 2, lag: float = 0.0,
@@ -175,6 +215,7 @@ def _measure_frames(scan, opt, frames_idx, workers, lag, progress):
         a = scan.stack.read(k, check=False)
         if lag and k in previous:
             a = lag_corrected(a, scan.stack.read(previous[k], check=False), lag)
+        a = linearised(a, opt.response_lambda or 0.0)
         try:
             return with_background(a, detect_frame(a, opt), opt)
         except NonFiniteFrame:
@@ -287,7 +328,9 @@ def assemble(scan: Scan, opt: DetectOptions, frames_idx: list[int], results: lis
         missing = [] if robot else sorted(i for i, (a, z) in spans.items() if a < pos < z and i not in seen)
         frames.append({"frame": k, "markers": markers, "missing": missing})
     return {"format": MARKERS_FORMAT, "software": f"conecal {__version__}",
-            "centre": "attenuation centroid of the sphere shadow (predict with conecal.geometry.shadow_centroid)",
+            "centre": "attenuation centroid of the sphere shadow (predict with conecal.geometry.shadow_centroid); "
+                      "with options.response_lambda > 0, of (1 - exp(-lambda a)) / lambda, the response that "
+                      "makes the image's shadows add (a log display stored as transmission)",
             "units": {"x": "px (column)", "y": "px (row)", "sigma": "px, 1 sigma", "radius": "px",
                       "contrast": "attenuation above background"},
             "detector": {"shape": [rows, cols]},
@@ -295,7 +338,7 @@ def assemble(scan: Scan, opt: DetectOptions, frames_idx: list[int], results: lis
                         "pixel_noise": round(opt.pixel_noise, 8), "noise_kappa": round(opt.noise_kappa, 4),
                         "noise_reference": round(opt.noise_reference, 8),
                         "max_anisotropy": opt.max_anisotropy, "min_relative_contrast": opt.min_relative_contrast,
-                        "size_scale": round(opt.size_scale, 4)},
+                        "size_scale": round(opt.size_scale, 4), "response_lambda": opt.response_lambda or 0.0},
             "reference_mu_px": round(ref, 6), "contrast_gain": gain.document(),
             "identities": "phantom ids are assigned by fit-pose" if robot else "tracked across frames",
             "n_ids": 0 if robot else len(spans), "frames": frames}
