@@ -18,7 +18,7 @@ Where eta is positive beyond doubt the image is first linearised
 that leaves the central chord independent of the background level. On a
 log display stored as transmission (T = 1 - k A, A the line integral)
 lambda = 1 makes y = k A exactly; an independent renderer's intensifier
-log display reads 0.87-0.89. Joint fits of overlapping shadows then add
+log display reads 0.80-0.95 (its glare and vignetting). Joint fits of overlapping shadows then add
 spheres where their attenuations add. A real intensifier recording reads
 eta 0.03 +- 0.02 and stays in attenuation.
 
@@ -120,12 +120,17 @@ def _sizes(blobs: list[Blob]) -> list[list[Blob]]:
     return groups
 
 
+def _curve(a, lam: float):
+    """(1 - exp(-lam a)) / lam in float64, for lam > 0."""
+    return -np.expm1(-lam * np.asarray(a, np.float64)) / lam
+
+
 def linearised(a: np.ndarray, lam: float) -> np.ndarray:
     """Attenuation ``a`` through the response (1 - exp(-lam a)) / lam: an
     image as float32, a number as float; ``a`` itself at lam = 0."""
     if not lam:
         return a
-    y = -np.expm1(-lam * np.asarray(a, np.float64)) / lam
+    y = _curve(a, lam)
     return float(y) if np.ndim(a) == 0 else y.astype(np.float32)
 
 
@@ -136,7 +141,7 @@ def _chords(grp: list[Blob], lam: float) -> np.ndarray:
     c = np.array([2 * b.mu_px * b.radius for b in grp])
     if not lam:
         return np.column_stack([bg, np.log(c)])
-    return np.column_stack([-np.expm1(-lam * bg) / lam, -lam * bg + np.log(-np.expm1(-lam * c) / lam)])
+    return np.column_stack([_curve(bg, lam), np.log(_curve(bg + c, lam) - _curve(bg, lam))])
 
 
 def measure_gain(results: list[list[Blob]], lam: float = 0.0) -> Gain:
