@@ -98,9 +98,9 @@ def _class_scales(b: Bundle, obs: Observations, usable: list, dets: dict) -> dic
     over all (a robust variance component per class: detect's sigma may be
     right for separated shadows and several times too small for overlapping
     ones). Classes with fewer than _CLASS_MIN markers keep 1."""
-    cls = _gather(usable, dets, 2)
-    if len(cls) != len(obs) or not np.array_equal(_gather(usable, dets, 1), obs.sigma):
-        return {}      # (not the bundle's rows in its order)
+    cls = _row_classes(usable, dets, obs)
+    if cls is None:
+        return {}
     z2 = np.sum(b.residual_px ** 2, 1) / obs.sigma ** 2
     whole = float(np.median(z2))
     out = {}
@@ -233,9 +233,9 @@ def _solve(fams, cam, usable, dets, shape, radius, opt: FreeOptions):
                                                                   radius, opt)
         final = fits[chosen.name] = adjust(chosen, cam, obs, shape.points, radius, None, None,
                                            start=start, max_nfev=100)
-        cls = _gather(usable, dets, 2)
-        overlap = np.array(["overlap" in c for c in cls]) if len(cls) == len(obs) else None
-        dropped, bar = _judge(final, usable, obs, opt, bar, overlap)
+        cls = _row_classes(usable, dets, obs)
+        dropped, bar = _judge(final, usable, obs, opt, bar,
+                              None if cls is None else np.array(["overlap" in c for c in cls]))
         if not dropped:
             return final, fits, choice, refinement, pinhole, usable, obs
         usable = [fr for fr in usable if fr["status"].ok]
@@ -319,6 +319,15 @@ def _gather(usable, dets, j: int) -> np.ndarray:
     """Item ``j`` of ``dets`` (0 centres, 1 sigma, 2 flag class) of every
     bundled detection, in the bundle's row order."""
     return np.concatenate([dets[fr["frame"]][j][np.asarray(_pairs(fr)[0], int)] for fr in usable])
+
+
+def _row_classes(usable, dets, obs: Observations) -> np.ndarray | None:
+    """detect's flag class of each of the bundle's rows ``obs``, or None when
+    the frames' pairs are not those rows in their order."""
+    cls = _gather(usable, dets, 2)
+    if len(cls) != len(obs) or not np.array_equal(_gather(usable, dets, 1), obs.sigma):
+        return None
+    return cls
 
 
 def _observations(usable, dets):

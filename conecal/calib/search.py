@@ -160,13 +160,15 @@ def search_frame(cam: Camera, shape: PhantomShape, xy: np.ndarray, guess=None,
         raw = voted_candidates(cam, shape, xy, guess, opt.n_orientations, depth=opt.depth_mm)
         if guess is not None and not raw:
             raw = voted_candidates(cam, shape, xy, None, opt.n_orientations, depth=opt.depth_mm)
-    cands = [_polish(cam, shape, xy, c, gates=(3 * opt.gate_px, opt.gate_px)) for c in raw]
-    cands = [c for c in cands if len(c.sph) >= 4 and np.isfinite(c.rms_px)]
+    def polished(found):
+        return [c for c in (_polish(cam, shape, xy, c, gates=(3 * opt.gate_px, opt.gate_px)) for c in found)
+                if len(c.sph) >= 4 and np.isfinite(c.rms_px)]
+
+    cands = polished(raw)
     if shape.lattice is None and (not cands or min(c.rms_px for c in cands) > opt.retry_px):
         # nothing fits well (a crowded view of a 3-D phantom): a denser second search
         more = voted_candidates(cam, shape, xy, None, 3 * opt.n_orientations, seed=11, depth=opt.depth_mm)
-        cands += [c for c in (_polish(cam, shape, xy, c, gates=(3 * opt.gate_px, opt.gate_px)) for c in more)
-                  if len(c.sph) >= 4 and np.isfinite(c.rms_px)]
+        cands += polished(more)
     if voted_grid and cands:
         # (a grid seen nearly edge-on, whose image lattice did not grow: the
         # turns of its lattice map it onto itself, so the vote may find only
@@ -174,8 +176,7 @@ def search_frame(cam: Camera, shape: PhantomShape, xy: np.ndarray, guess=None,
         # grid with 3 holes at 81 deg, 54 spheres all named wrong at 0.44 px;
         # the right one, among its turns, names 56)
         top = min(cands, key=lambda c: (-c.score, c.rms_px))
-        cands += [c for c in (_polish(cam, shape, xy, c, gates=(3 * opt.gate_px, opt.gate_px))
-                              for c in turned(shape, shape.points, top)) if len(c.sph) >= 4 and np.isfinite(c.rms_px)]
+        cands += polished(turned(shape, shape.points, top))
     if cands:
         cands = _tighten(cam, shape, xy, cands, opt.gate_floor_px)
     cands = [c for c in cands if len(c.sph) >= opt.min_spheres and np.isfinite(c.rms_px)]

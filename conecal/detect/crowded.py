@@ -326,7 +326,7 @@ def measure_crowded(a: np.ndarray, kept: list[Blob], merged: list[Blob], opt: De
             tries = [(n, fit_group(ag, np.delete(s0, n, axis=0), opt.blur_px, noise, others, invalid, box=box,
                                    quadratic=quad)) for n in (seeds if len(seeds) <= _MAX_SEED_TRIES else [])]
             tries = [(f[4], n) for n, f in tries if f is not None]
-            drop = [min(tries)[1]] if tries else [n for n, i in enumerate(g) if i in trial]
+            drop = [min(tries)[1]] if tries else seeds
             fit = refit(s0, [n for n in range(len(g)) if n not in drop])
             g = dropped(g, drop)
         # a member never measured alone must earn its place in the joint fit
