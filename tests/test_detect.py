@@ -275,3 +275,34 @@ def test_a_background_curves_only_where_its_ring_shows_it():
     assert kernels.fit_background(flat, no, 15.0, 15.0, 9.0, 14.0, 8.0, e, e, e, 150, 0.0)[1]
     assert not kernels.fit_background(flat, no, 15.0, 15.0, 9.0, 14.0, 8.0, e, e, e, 150, 4.0)[1]
     assert kernels.fit_background(bent, no, 15.0, 15.0, 9.0, 14.0, 8.0, e, e, e, 150, 4.0)[1]
+
+
+def test_an_8_bit_jpeg_of_a_quiet_image_raises_no_shadows_from_its_blocks():
+    """JPEG at quality 70 quantises a quiet 8-bit image's noise away: most
+    neighbour differences are 0, the MADs the noise was measured by were 0,
+    and every block a grey level or two below its neighbours was a "shadow"
+    (an independent renderer's cage: 382 false shadows, 1087 s). The noise
+    is now the blocks' steps (:func:`conecal.stats.spread_sigma`)."""
+    import cv2
+    from conecal.detect import DetectOptions, detect_frame
+    from conecal.detect.noise import noise_correlation, noise_pixel, noise_small
+    from conecal.detect.overlap import render
+
+    rng = np.random.default_rng(3)
+    n = 320
+    sph = np.array([[x + rng.uniform(-0.5, 0.5), y + rng.uniform(-0.5, 0.5), 3.5, 0.25]
+                    for x in range(40, n - 20, 60) for y in range(40, n - 20, 60)])
+    yy, xx = np.mgrid[0:n, 0:n]
+    a = 0.4 + 0.3 * xx / n + 0.1 * np.sin(yy / 70.0) + render((n, n), sph, 0.6)
+    counts = rng.poisson(8000 * np.exp(-a)) / 8000.0
+    # an intensifier's log display (ln E over 0.02..1.1 into 8 bits), then JPEG at quality 70
+    disp = np.clip(np.round(255 * np.log(np.maximum(counts, 1e-6) / 0.02) / np.log(55.0)), 0, 255).astype(np.uint8)
+    jpg = cv2.imdecode(cv2.imencode(".jpg", disp, [cv2.IMWRITE_JPEG_QUALITY, 70])[1], cv2.IMREAD_GRAYSCALE)
+    flat = 255 * np.log(1 / 0.02) / np.log(55.0)
+    img = (-np.log(np.maximum(jpg.astype(np.float64), 1.0) / flat)).astype(np.float32)
+    assert np.mean(np.diff(img[::4], axis=1) == 0) > 0.5          # the blocks are flat
+    opt = DetectOptions(diameter_px=(5.0, 10.0), blur_px=0.6, pixel_noise=noise_pixel(img),
+                        noise_kappa=noise_correlation(img), noise_reference=noise_small(img))
+    blobs = detect_frame(img, opt)
+    near = [min(np.hypot(b.x - sph[:, 0], b.y - sph[:, 1])) < 1.5 for b in blobs]
+    assert sum(near) == len(sph) and all(near)

@@ -18,3 +18,19 @@ def test_mad_sigma_and_difference_sigma_recover_a_normal_sigma():
     # about zero for values known to scatter about 0, per column along an axis
     z = rng.normal(0.0, [1.0, 3.0], (100_000, 2))
     assert np.allclose(mad_sigma(z, axis=0, centre=False), [1.0, 3.0], rtol=0.02)
+
+
+def test_spread_sigma_is_the_mad_unless_ties_hold_the_median():
+    from conecal.stats import spread_sigma
+
+    rng = np.random.default_rng(2)
+    a = rng.normal(0.0, 2.0, 100_001)
+    assert spread_sigma(a) == mad_sigma(a)
+    a[:3000] = 1e6                       # outliers do not move it
+    assert spread_sigma(a) == mad_sigma(a)
+    # noise quantised away to mostly 0 (an 8-bit JPEG's flat blocks): the MAD
+    # says 0, the steps that are left say about the sigma they were cut from
+    for sd in (0.3, 0.5):
+        q = np.round(rng.normal(0.0, sd, 100_000))
+        assert mad_sigma(q) == 0.0 and 0.7 * sd < spread_sigma(q) < 1.3 * sd
+    assert spread_sigma(np.zeros(50)) == 0.0

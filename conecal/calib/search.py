@@ -24,6 +24,7 @@ from ..geometry import matrix_to_rotvec
 from .camera import Camera
 from .candidate import Candidate, assign, refine_pose
 from .lattice import planar_candidates, turned
+from .partial import moved
 from .phantom import PhantomShape, symmetry_name
 from .vote import voted_candidates
 
@@ -177,6 +178,12 @@ def search_frame(cam: Camera, shape: PhantomShape, xy: np.ndarray, guess=None,
         # the right one, among its turns, names 56)
         top = min(cands, key=lambda c: (-c.score, c.rms_px))
         cands += polished(turned(shape, shape.points, top))
+    if shape.lattice is None and cands:
+        # (a partial symmetry of a 3-D phantom -- a helix's screw by a bead --
+        # images it alike in two poses where the frame does not see what
+        # breaks it: the moved labelling is offered, to tie where it does)
+        top = min(cands, key=lambda c: (-c.score, c.rms_px))
+        cands += polished(moved(shape, top))
     if cands:
         cands = _tighten(cam, shape, xy, cands, opt.gate_floor_px)
     cands = [c for c in cands if len(c.sph) >= opt.min_spheres and np.isfinite(c.rms_px)]

@@ -1,0 +1,104 @@
+"""A 3-D phantom's partial symmetries: rigid motions that carry half of its
+spheres or more onto other spheres (a helix's screw by one bead: every bead
+onto the next but the last). A frame that does not see what breaks one (the
+helix's ends, or beads of the other size when sizes code the position, which
+``phantom.csv`` does not hold) images the phantom identically in two poses,
+so the search must offer the moved labelling as a rival and let the tie make
+the frame ambiguous (an independent renderer's coded helix: three frames
+named every bead one along, "ok", the pose screwed by 15 deg and 4.6 mm).
+Whole symmetries (a grid's turns) are the lattice's (:mod:`.lattice`).
+Units: mm, phantom frame.
+"""
+
+from __future__ import annotations
+
+import functools
+
+import numpy as np
+
+from .candidate import Candidate
+from .phantom import PhantomShape
+
+# two spheres are the same place within this share of the phantom's spacing
+_SAME = 0.05
+# a motion counts when it carries this share of the spheres onto spheres
+_SHARE = 0.5
+# phantoms with more spheres than this are not searched (a grid's are its lattice's)
+_MOST = 200
+SCREWED = "moved by a partial symmetry of the phantom"
+
+
+def _kabsch(a: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Rotation R and shift o with R a + o = b in the least-squares sense (k, 3)."""
+    ca, cb = a.mean(0), b.mean(0)
+    U, _, Vt = np.linalg.svd((b - cb).T @ (a - ca))
+    R = U @ np.diag([1.0, 1.0, np.linalg.det(U @ Vt)]) @ Vt
+    return R, cb - R @ ca
+
+
+@functools.lru_cache(maxsize=16)
+def _maps(key: bytes, n: int) -> tuple:
+    P = np.frombuffer(key).reshape(n, 3)
+    D = np.linalg.norm(P[:, None] - P[None], axis=-1)
+    off = D + np.diag(np.full(n, np.inf))
+    spacing = float(np.median(off.min(1)))
+    tol = _SAME * spacing
+    found: dict = {}
+    # each sphere with its nearest neighbour and the next nearest not on their line
+    order = np.argsort(off, axis=1)
+    for a in range(n):
+        b = int(order[a, 0])
+        for c in range(n):
+            for e in np.flatnonzero(np.abs(D[c] - D[a, b]) < tol):
+                if (c, int(e)) == (a, b) or c == e:
+                    continue
+                for g in order[a, 1:4]:
+                    if g == b:
+                        continue
+                    h = np.flatnonzero((np.abs(D[c] - D[a, g]) < tol) & (np.abs(D[e] - D[b, g]) < tol))
+                    for hh in h:
+                        if len({c, int(e), int(hh)}) < 3:
+                            continue
+                        R, o = _kabsch(P[[a, b, g]], P[[c, int(e), int(hh)]])
+                        Q = P @ R.T + o
+                        d = np.linalg.norm(Q[:, None] - P[None], axis=-1)
+                        j = d.argmin(1)
+                        hit = d[np.arange(n), j] < 2 * tol
+                        if hit.sum() < max(5, _SHARE * n) or np.all(j[hit] == np.flatnonzero(hit)):
+                            continue
+                        to = tuple(int(j[i]) if hit[i] else -1 for i in range(n))
+                        found.setdefault(to, None)
+                    break   # one third sphere fixes the motion
+    # (a whole symmetry maps every sphere: that is a phantom symmetry, not partial)
+    return tuple(t for t in found if -1 in t)
+
+
+def partial_maps(points: np.ndarray) -> tuple:
+    """The partial symmetries of ``points`` (n, 3) mm: tuples ``to`` with
+    ``to[i]`` the sphere that sphere i is carried onto, -1 where none."""
+    P = np.ascontiguousarray(points, dtype=np.float64)
+    if len(P) < 5 or len(P) > _MOST:
+        return ()
+    return _maps(P.tobytes(), len(P))
+
+
+def moved(shape: PhantomShape, c: Candidate) -> list[Candidate]:
+    """Candidate ``c`` relabelled by each partial symmetry of a 3-D phantom
+    (see the module's docstring): each detection keeps its place and takes
+    the sphere its sphere is carried onto, and the pose moves alike so that
+    the relabelled spheres land where the detections are."""
+    if shape.lattice is not None:
+        return []
+    out = []
+    P = shape.points
+    for to in partial_maps(P):
+        keep = np.array([to[s] >= 0 for s in c.sph], bool)
+        # (a rival must explain about as many: a motion that keeps few is none)
+        if keep.sum() < max(4, 0.75 * len(c.sph)):
+            continue
+        old, new = c.sph[keep], np.array([to[s] for s in c.sph[keep]])
+        Rg, og = _kabsch(P[old], P[new])
+        R = c.R @ Rg.T
+        out.append(Candidate(c.det[keep], new, R, c.t - R @ og, how=f"{c.how}, {SCREWED}"))
+    return out
+
