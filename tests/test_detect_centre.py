@@ -6,7 +6,7 @@ import pytest
 
 from conecal.detect import DetectOptions, detect_frame
 from conecal.detect.centre import MODEL_CENTROID_PX
-from conecal.detect.blobs import detect_blobs
+from conecal.detect.frame import detect_blobs
 from conecal.detect.noise import noise_correlation, noise_pixel
 from conecal.detect.overlap import fit_group
 

@@ -491,7 +491,7 @@ def test_overlapping_balls_on_a_log_display_are_fitted_as_two_or_three():
     # fitted them to the noise, so all five were lost; fitted as two or three with σ
     # for the misfit they leave, each is found
     from benchmarks import carm_images as gen
-    from conecal.detect.noise import noise_correlation, noise_pixel, noise_slope
+    from conecal.detect.noise import noise_correlation, noise_pixel
 
     sc = gen._setup("ball3d_ii", 1)
 
@@ -499,12 +499,7 @@ def test_overlapping_balls_on_a_log_display_are_fitted_as_two_or_three():
         return (-np.log(np.maximum(gen.render_frame(sc, k)[0].astype(np.float64) / 255.0, 1e-6))).astype(np.float32)
 
     a, mid = att(1), att(6)
-    # (the noise as detect measures it: over the field, and how it grows with
-    # the level; with the frame's median noise every ball but two was clutter
-    # and the frame's contrast came from those two, faint ones)
-    beta, level = noise_slope([mid, att(3), att(9)], 4.0)
-    opt = DetectOptions(diameter_px=(6.3, 16.8), pixel_noise=noise_pixel(mid, limit=4.0),
-                        noise_kappa=noise_correlation(mid, limit=4.0), noise_slope=beta, noise_level=level)
+    opt = DetectOptions(diameter_px=(6.3, 16.8), pixel_noise=noise_pixel(mid), noise_kappa=noise_correlation(mid))
     blobs = detect_frame(a, opt)
     got = set()
     for c in gen.render_frame(sc, 1)[1]:

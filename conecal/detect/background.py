@@ -22,7 +22,6 @@ from scipy.linalg import solveh_banded
 
 from ..errors import FitError
 from ..fit.core import Parameter, solve
-from .noise import noise_at
 from .overlap import group_box, mask_weights, render
 
 _KNOT_PX = 1.0
@@ -53,13 +52,11 @@ def _patch(a, x, y, R, blur, others, invalid):
 
 
 def structured(a: np.ndarray, x: float, y: float, R: float, blur: float, noise: float, invalid=None,
-               others=(), opt=None) -> bool:
+               others=()) -> bool:
     """Whether the background around the shadow at (x, y) holds more than a
     quadratic surface follows: the scatter of a quadratic fitted to the
     patch outside the shadow (half-width ~3R) over 1.3x the pixel noise
-    ``noise`` (at the patch's level by ``opt``'s noise slope, when given:
-    :func:`conecal.detect.noise.noise_at`). Cheap; decides where
-    :func:`fit_profile` is worth its cost."""
+    ``noise``. Cheap; decides where :func:`fit_profile` is worth its cost."""
     (c0, q0, _, _), roi, wgt, xx, yy = _patch(a, x, y, R, blur, others, invalid)
     # every st-th pixel of a large shadow's patch (a 90 px shadow's holds 300k)
     st = max(1, int(R // 6))
@@ -73,7 +70,7 @@ def structured(a: np.ndarray, x: float, y: float, R: float, blur: float, noise: 
     # normal equations of 6 unknowns (an lstsq here woke BLAS's threads in every worker)
     N = A.T @ A
     c = np.linalg.solve(N + 1e-12 * np.trace(N) * np.eye(6), A.T @ roi[m])
-    return float(np.std(roi[m] - A @ c)) > 1.3 * (noise if opt is None else noise_at(noise, float(c[0]), opt))
+    return float(np.std(roi[m] - A @ c)) > 1.3 * noise
 
 
 def smooth_under(a: np.ndarray, box, discs, blur: float, scale: float, invalid=None) -> np.ndarray | None:

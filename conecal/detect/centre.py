@@ -45,8 +45,7 @@ _AGREE = 4.0
 # a centroid's σ over its model's is 2-3 (5-95 %: 1.5-3.8 on the independent
 # helix, 2.0-3.1 on 8-bit JPEG); far above, the centroid's σ holds more than
 # noise (a step beside the shadow: 3.0 px against the model's 0.04, where the
-# model's centre was 0.17 px off and the centroid's 0.01) or a small shadow's
-# window is wide for it, and the shadow is measured as a disturbed one
+# model's centre was 0.17 px off and the centroid's 0.01), and it stays
 _NOISE_LIKE = 4.0
 # a flagged marker's centre and its model's may differ by this many times
 # their σ (squared distance over the sum of variances)
@@ -89,34 +88,16 @@ def model_centre(a: np.ndarray, b: Blob, opt: DetectOptions, noise: float, inval
         return b
     s_fit = joint_sigma(fit[2][0], opt.noise_kappa)
     gap2 = (sph[0] - b.x) ** 2 + (sph[1] - b.y) ** 2
-    if not np.isfinite(s_fit) or not s_fit < b.sigma:
+    if not np.isfinite(s_fit) or not s_fit < b.sigma <= _NOISE_LIKE * s_fit \
+            or gap2 > _AGREE * (b.sigma**2 + s_fit**2):
         return b
-    if b.sigma > _NOISE_LIKE * s_fit or gap2 > _AGREE * (b.sigma**2 + s_fit**2):
-        # the centroid holds more than noise, or the two differ on the
-        # background under the shadow, which then disturbs it (a thick
-        # cylinder's curved edge moved a centroid 0.6 px at σ 0.1 where its
-        # model was 0.1 px off; a holder's wall moved a model 0.2-0.4 px): measured
-        # by its background's two readings (flagged clutter where the
-        # background holds structure), or as the centroid flagged clutter
-        # with σ covering the gap
-        got = _apart_centre(a, b, opt, noise, invalid, others, typical, suspect=True)
-        if got is b:
-            return replace(b, flags=sorted(set(b.flags) | {"clutter"}), sigma=float(np.sqrt(b.sigma**2 + gap2 / 2)))
-        if (got.x - b.x) ** 2 + (got.y - b.y) ** 2 <= 2 * _AGREE * b.sigma**2:
-            # (the two readings side with the centroid, within its own noise:
-            # the quadratic model was the one disturbed, by a step beside it)
-            return b
-        if structured(a, b.x, b.y, b.radius, opt.blur_px, noise, invalid, others, opt):
-            return replace(got, flags=sorted(set(got.flags) | {"clutter"}))
-        return got
     # (a gap beyond both noises, within the bar, is counted as the model's error)
     excess = max(gap2 / 2 - b.sigma**2 - s_fit**2, 0.0)
     return replace(b, x=float(sph[0]), y=float(sph[1]),
                    sigma=float(np.sqrt(s_fit**2 + MODEL_CENTROID_PX**2 + excess)))
 
 
-def _apart_centre(a: np.ndarray, b: Blob, opt: DetectOptions, noise: float, invalid, others, typical,
-                  suspect: bool = False) -> Blob:
+def _apart_centre(a: np.ndarray, b: Blob, opt: DetectOptions, noise: float, invalid, others, typical) -> Blob:
     """A flagged marker (``overlap``: measured with its neighbours' models
     removed; ``clutter``: a disturbed background) whose shadow stands apart
     from every other (no disc overlaps its own), measured by its own sphere
@@ -134,10 +115,7 @@ def _apart_centre(a: np.ndarray, b: Blob, opt: DetectOptions, noise: float, inva
     variance per axis. ``typical``: the frame's sphere radius (px) and
     contrast (None when unknown), for a marker whose window misread them.
     A marker said to be two shadows nearly on top (``b.pair``) is kept unless
-    the model holds one sphere's contrast per px of chord (two read more).
-    The model's centre must agree with ``b``'s (``_APART_AGREE``) unless
-    ``b``'s is ``suspect``: an unflagged centroid its own model disagreed
-    with, where the two backgrounds' agreement (in σ) decides."""
+    the model holds one sphere's contrast per px of chord (two read more)."""
     if any(np.hypot(x - b.x, y - b.y) < r + b.radius for x, y, r in others):
         return b
     start, noise, fit = _own_fit(a, b, opt, noise, invalid, others)
@@ -156,7 +134,7 @@ def _apart_centre(a: np.ndarray, b: Blob, opt: DetectOptions, noise: float, inva
         return b
     # (sphere (x, y, R, mu), centre σ) on the quadratic background
     quad = fit[1][0], joint_sigma(fit[2][0], opt.noise_kappa)
-    if structured(a, b.x, b.y, b.radius, opt.blur_px, noise, invalid, others, opt):
+    if structured(a, b.x, b.y, b.radius, opt.blur_px, noise, invalid, others):
         prof = fit_profile(a, start, opt.blur_px, noise, invalid, others)
         if prof is None:
             return b
@@ -171,10 +149,8 @@ def _apart_centre(a: np.ndarray, b: Blob, opt: DetectOptions, noise: float, inva
     (x, y), (x2, y2) = best[0][:2], second[0][:2]
     s2 = best[1] ** 2 + MODEL_CENTROID_PX**2 + ((x - x2) ** 2 + (y - y2) ** 2) / 2
     gap2 = (x - b.x) ** 2 + (y - b.y) ** 2
-    if not (np.isfinite(s2) and s2 < b.sigma**2) or (not suspect and gap2 > _APART_AGREE * (b.sigma**2 + s2)):
+    if not (np.isfinite(s2) and s2 < b.sigma**2) or gap2 > _APART_AGREE * (b.sigma**2 + s2):
         return b
-    # (for a suspect centroid too: beside an independent helix's tube wall
-    # both backgrounds' models agreed 0.12 px off where the centroid was not)
     excess = max(gap2 / 2 - b.sigma**2 - s2, 0.0)
     return replace(b, x=float(x), y=float(y), sigma=float(np.sqrt(s2 + excess)))
 

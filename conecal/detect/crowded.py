@@ -20,8 +20,7 @@ from dataclasses import replace
 
 import numpy as np
 
-from .blobs import detect_blobs
-from .frame import ROUND_ANISOTROPY, Blob, DetectOptions, chord_like, refine, window_reach
+from .frame import ROUND_ANISOTROPY, Blob, DetectOptions, chord_like, detect_blobs, refine, window_reach
 from .background import fit_profile, structured
 from .centre import model_centre
 from .edge import CONE_OFFSET_PX, beside_edge
@@ -124,19 +123,11 @@ def detect_frame(a: np.ndarray, opt: DetectOptions) -> list[Blob]:
     return [model_centre(a, b, opt, noise, invalid, neighbours(b, out, peaks, opt), (R1, mu1)) for b in out]
 
 
-def _reference(kept: list[Blob]) -> list[Blob]:
-    """The frame's shadows measured alone that a sphere's size and contrast
-    are judged by: the unflagged, else all; not those sized by their core
-    alone (``Blob.faint``) while others are there."""
-    sure = [b for b in kept if not b.faint] or kept
-    return [b for b in sure if not b.flags] or sure
-
-
 def _typical(kept: list[Blob], opt: DetectOptions):
     """The frame's sphere radius (px) and contrast (attenuation per px of
     chord, None when no sphere stands alone): from its separate shadows, else
     the nominal size the options were made from."""
-    ref = _reference(kept)
+    ref = [b for b in kept if not b.flags] or kept
     if ref:
         return float(np.median([b.radius for b in ref])), float(np.median([b.mu_px for b in ref]))
     return float(np.sqrt(opt.diameter_px[0] * opt.diameter_px[1] / 0.96)) / 2, None
@@ -214,7 +205,7 @@ def measure_crowded(a: np.ndarray, kept: list[Blob], merged: list[Blob], opt: De
     parts, gone, singles, unsplit = [], set(), [], []
     for m in list(merged) + list(deep):
         near = neighbours(m, [*kept, *merged, *deep, *around], peaks, opt, 1.5 * m.radius + 2, 1.2 * R1)
-        found = split(a, m, R1, mu1, opt.blur_px, noise, opt.noise_kappa, near, invalid, peaks, opt)
+        found = split(a, m, R1, mu1, opt.blur_px, noise, opt.noise_kappa, near, invalid, peaks)
         if found is None:
             is_deep = any(m is d for d in deep)
             # two shadows nearly on top of each other that no split separates
@@ -304,7 +295,7 @@ def measure_crowded(a: np.ndarray, kept: list[Blob], merged: list[Blob], opt: De
         # measured alone was disturbed: in a plain crowd the neighbours' own
         # misfit reads as structure and the profile takes it up)
         if _small(g, s0) and any("clutter" in blobs[i].flags for i in g) \
-                and structured(a, gx, gy, ext, opt.blur_px, noise, invalid, others, opt):
+                and structured(a, gx, gy, ext, opt.blur_px, noise, invalid, others):
             prof = fit_profile(a, s0, opt.blur_px, noise, invalid, others)
             if prof is not None:
                 (pc0, pq0, pc1, pq1), bg, s0 = prof
@@ -363,7 +354,7 @@ def measure_crowded(a: np.ndarray, kept: list[Blob], merged: list[Blob], opt: De
             # fitted as one read 3.6 px from either (and with no shadow
             # measured alone to compare with, no claim)
             x, y, R, mu = fit[1][0]
-            ref = _reference(kept)
+            ref = [b for b in kept if not b.flags] or kept
             if not ref or not like_neighbours(R, mu, nearest_shadows(x, y, ref), sized=False):
                 fit = None
         if fit is None:
@@ -394,7 +385,7 @@ def measure_crowded(a: np.ndarray, kept: list[Blob], merged: list[Blob], opt: De
         gx, gy = s0[:, 0].mean(), s0[:, 1].mean()
         ext = float(np.max(np.hypot(s0[:, 0] - gx, s0[:, 1] - gy) + s0[:, 2]))
         mask = [(b.x, b.y, b.radius) for b in blobs if (b.x - gx) ** 2 + (b.y - gy) ** 2 < (ext + 4 * R1) ** 2]
-        return structured(a, gx, gy, ext / 3, opt.blur_px, noise, invalid, mask, opt)
+        return structured(a, gx, gy, ext / 3, opt.blur_px, noise, invalid, mask)
 
     groups = groups_of(blobs, opt.blur_px)
     grouped = {i for g in groups for i in g}
@@ -444,7 +435,7 @@ def _one_sphere(m: Blob, kept: list[Blob]) -> bool:
       chord (0.5-1.4x; a material's, whatever the size): a phantom's larger
       ball, whose flat top can read as a ridge. Two spheres on one line of
       sight that round would carry about twice that."""
-    ref = _reference(kept)
+    ref = [b for b in kept if not b.flags] or kept
     if len(ref) < 2 or "truncated" in m.flags or not np.isfinite(m.sigma) or m.snr <= 0:
         return False   # (a strong peak handed on unmeasured has no shape to judge)
     if not chord_like(m):

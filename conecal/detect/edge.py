@@ -43,7 +43,7 @@ def beside_edge(a, b: Blob, opt: DetectOptions, noise: float, invalid, others=()
     edge beside it (a plate's step, a tube's wall) fitted and removed, when
     one is there and the centroid then passes the clutter tests; otherwise
     ``b`` as it was. ``others``: (x, y, r) of the shadows around it."""
-    if "clutter" not in b.flags and not structured(a, b.x, b.y, b.radius, opt.blur_px, noise, invalid, others, opt):
+    if "clutter" not in b.flags and not structured(a, b.x, b.y, b.radius, opt.blur_px, noise, invalid, others):
         return b
     fit = fit_profile(a, np.array([[b.x, b.y, b.radius, b.mu_px]]), opt.blur_px, noise, invalid, others)
     if fit is None:

@@ -34,8 +34,9 @@ import cv2
 import numpy as np
 
 from . import kernels
-from .chain import anisotropy
-from .noise import noise_at
+from .chain import anisotropy, chain_like, rough_blob
+from .noise import noise_pixel
+from .peaks import candidates, invalid_mask, small_frame
 from .ring import keep_out
 
 
@@ -74,10 +75,6 @@ class DetectOptions:
     # units) of the frame ``pixel_noise`` was measured on: a frame noisier than
     # that by 30 % measures its own pixel noise (0: never)
     noise_reference: float = 0.0
-    # how the pixel noise grows with the background's level (``noise_slope``):
-    # d ln sigma / d attenuation, and the level at which ``pixel_noise`` holds
-    noise_slope: float = 0.0
-    noise_level: float = 0.0
     # touching shadows fitted together, merged blobs split, a straight
     # background step beside a shadow removed (conecal.detect.crowded)
     joint_overlaps: bool = True
@@ -110,13 +107,17 @@ class Blob:
     snr: float
     profile_misfit: float = 0.0   # |b - best chord profile| / |b| in the window
     pair: bool = False            # sigma covers a second sphere nearly on top (an unsplit or hidden pair)
-    # sized by its half-maximum core, its window's moments being noise (refine):
-    # no reference for the frame's sphere size, contrast or peak strength
-    faint: bool = False
     # the background under it (attenuation) and its slope (attenuation/px), from conecal.detect.gain
     bg: float | None = None
     bg_gx: float | None = None
     bg_gy: float | None = None
+
+
+def _rough_blob(a: np.ndarray, cx: float, cy: float, r: float, blur: float, noise: float, opt: DetectOptions):
+    """A strong peak no window measured, as a rough blob when it may be a chain (:mod:`.chain`), else None."""
+    f = rough_blob(a, cx, cy, r, blur, noise)
+    ok = f is not None and chain_like(f["radius"], f["anisotropy"], opt.diameter_px[1], opt.max_anisotropy)
+    return Blob(**f) if ok else None
 
 
 _EMPTY = np.zeros(0)
@@ -132,13 +133,6 @@ _F_QUAD = 4.0
 # a shadow's second-moment size below this share of its half-maximum size is
 # the window's rim weighed negative, not the shadow's size
 _MOAT_SHARE = 0.6
-# a window's second moment whose noise (px^2) is over this times the squared
-# half-maximum radius (half the moment 0.4 r^2 that size has) is too noisy
-# to size or shape a shadow that it makes too small or not round (a coded
-# helix's 1.6 mm beads over its cylinder read 1.5x this; at half this, a
-# lone bead of an independent helix, 0.55x, changed how its frame's
-# overlaps were measured: 3 of 149 lost)
-_NOISY_MOMENT = 0.2
 _NO_MASK = np.zeros((0, 0), np.bool_)
 
 
@@ -231,9 +225,6 @@ def refine(a: np.ndarray, x0: float, y0: float, r0: float, opt: DetectOptions, o
                                        opt.diameter_px[1]))
             ys_, xs_ = comp.nonzero()
             x, y = c0 + xs_.mean(), q0 + ys_.mean()
-            # (the core's shape, for when the window's moments are noise)
-            half_aniso = anisotropy(float(xs_.var()) + 1 / 12, float(ys_.var()) + 1 / 12,
-                                    float(np.mean((xs_ - xs_.mean()) * (ys_ - ys_.mean()))))
             sized = True
             continue
         st = kernels.window_moments(roi, coef, fx, fy, cx, cy, rw)
@@ -263,17 +254,6 @@ def refine(a: np.ndarray, x0: float, y0: float, r0: float, opt: DetectOptions, o
             if seen and mc > 0 and np.sqrt(2.5 * mc) >= _MOAT_SHARE * r_half and \
                     anisotropy(core[3], core[4], core[5]) <= opt.max_anisotropy:
                 r_m2 = r_half
-        noisy = first and not capped and (r_m2 < _MOAT_SHARE * r_half or not anisotropy(Mxx, Myy, Mxy) <= opt.max_anisotropy) \
-            and _moment_noise(sig_bg, rw, V, opt) > _NOISY_MOMENT * r_half**2 and alone(x, y, r_out)
-        if noisy:
-            # a small shadow in heavy noise (a 1.6 mm bead over a thick
-            # cylinder): the window's rho^2-weighted sum scatters by more than
-            # half the moment the half-maximum size has, and it came
-            # out too small or not round: that size holds, and the shape
-            # of the core (the moment had gone negative and lost half a
-            # coded helix's small beads). Alone only: a neighbour in the
-            # window bends the moment too (an independent helix's overlaps)
-            r_m2 = r_half
         if r_m2 <= 0:
             return None
         r_new = r if capped else r_m2   # a cut window's moment is not the size
@@ -287,25 +267,19 @@ def refine(a: np.ndarray, x0: float, y0: float, r0: float, opt: DetectOptions, o
         return None
     V, _, _, Mxx, Myy, Mxy, Sxx_e, Syy_e, sum_e2, abs_ex, n_win = st
     aniso = anisotropy(Mxx, Myy, Mxy)
-    if noisy:
-        core = kernels.window_moments(roi, coef, fx, fy, x - c0, y - q0, r + 2 * opt.blur_px)
-        aniso = min(half_aniso, anisotropy(core[3], core[4], core[5]) if core[0] > 0 else np.inf)
     # centroid noise: pixel noise grows with attenuation, var ~ exp(a) / N0
     sigma2 = sig_bg**2 * (Sxx_e + Syy_e) / 2 / V**2
     # the fitted background's slope uncertainty moves the centroid too
     slope_sig = sig_bg / (np.sqrt(max(n_in, 1)) * s_ring)
     sigma2 += (slope_sig * sum_e2 / V) ** 2
     sigma2 *= opt.noise_kappa   # noise correlated over a few px averages out less
-    # the frame's noise at this background's level (a shadow behind a thick
-    # cylinder or on an intensifier's dark periphery sits in more noise)
-    here = noise_at(noise, float(coef[0]), opt)
-    clutter = noise > 0 and sig_bg > 1.5 * here + 1e-6
+    clutter = noise > 0 and sig_bg > 1.5 * noise + 1e-6
     if clutter:
         # structure the background model cannot follow: its excess taken as a
         # coherent error over half the window (over the frame's noise, not the
         # ring's own: at a real plate's edge the ring's read 2x the frame's and
         # left sigma 4x short of what fit-pose's residuals said)
-        sigma2 += (0.5 * np.sqrt(max(sig_bg**2 - here**2, 0.0)) * abs_ex / V) ** 2
+        sigma2 += (0.5 * np.sqrt(max(sig_bg**2 - noise**2, 0.0)) * abs_ex / V) ** 2
     # The centroid of the shadow's core (rho < 0.75 r) must agree with the whole
     # window's: a faint blob, ghost or rod near the edge pulls them apart.
     core = kernels.window_moments(roi, coef, fx, fy, x - c0, y - q0, 0.75 * r)
@@ -355,15 +329,7 @@ def refine(a: np.ndarray, x0: float, y0: float, r0: float, opt: DetectOptions, o
     if clutter:
         flags.append("clutter")
     return Blob(float(x), float(y), r, float(np.sqrt(sigma2)), float(mu_px), peak, aniso, flags,
-                float(peak / sig_bg), misfit, faint=bool(noisy))
-
-
-def _moment_noise(sig: float, rw: float, V: float, opt: DetectOptions) -> float:
-    """Standard deviation (px^2) of a window's second moment Mxx + Myy from
-    pixel noise ``sig``: sig sqrt(kappa sum rho^4) / V over a disc of
-    radius ``rw`` px (sum rho^4 ~ pi rw^6 / 3), ``V`` the shadow's total
-    attenuation (px^2)."""
-    return float(sig * np.sqrt(opt.noise_kappa * np.pi * rw**6 / 3) / max(V, 1e-12))
+                float(peak / sig_bg), misfit)
 
 
 def window_radius(r, blur: float):
@@ -385,9 +351,139 @@ def chord_like(b: "Blob") -> bool:
 
 
 # a shadow this round is one sphere's whatever its size: a shadow measured
-# again twice as wide (blobs.detect_blobs), a merged blob of the neighbours'
+# again twice as wide (detect_blobs), a merged blob of the neighbours'
 # material (crowded._one_sphere; a box phantom's big balls read 1.02)
 ROUND_ANISOTROPY = 1.1
 
+# a sphere's candidate peak: on a real C-arm recording lone spheres read 51-61
+# (noise sigmas), the noise on an intensifier's dark blot 10-27; a sphere
+# overlapped by another reads more than alone
+_SEED_STRENGTH = 0.5
+
+
 class NonFiniteFrame(ValueError):
     """The frame holds NaN or inf pixels."""
+
+
+def detect_blobs(a: np.ndarray, opt: DetectOptions):
+    """Sphere-like shadows in attenuation frame ``a``, each measured alone
+    (not yet filtered by contrast): (kept blobs, blobs rejected as elongated
+    that may be merged shadows, clutter-flagged blobs rejected as misshapen
+    that may be spheres beside an edge, the frame's noise sigma, the
+    invalid-pixel mask or None, every candidate peak (x, y), and the peaks
+    strong enough to be a sphere's: at least ``_SEED_STRENGTH`` of the
+    median peak of the shadows measured alone unflagged). :func:`conecal.detect.crowded.detect_frame` goes on to
+    measure touching shadows together.
+
+    Raises :class:`NonFiniteFrame` if ``a`` holds NaN or inf pixels.
+    """
+    rows, cols = a.shape
+    small = small_frame(a, opt)
+    smax = float(small.max())
+    if not np.isfinite(smax) or not np.isfinite(small.min()):
+        raise NonFiniteFrame()
+    invalid = None
+    if opt.max_attenuation is not None and smax > opt.max_attenuation:
+        invalid = invalid_mask(a, opt)
+    cands, noise, ridges = candidates(a, opt, invalid, small if invalid is None else None, with_ridges=True)
+    if not opt.joint_overlaps:
+        ridges = []
+    noise *= opt.factor  # the downsampled frame averages factor**2 pixels
+    # the clutter test compares a background fit's scatter with the pixel noise
+    # at the fit's own scale (correlated noise included)
+    pixel = opt.pixel_noise
+    if opt.noise_reference and noise > 1.3 * opt.noise_reference:
+        # noisier than the frame the scan's noise was measured on (a frame of
+        # another dose or gain): every shadow there read as clutter
+        pixel = noise_pixel(a)
+    noise = max(noise, pixel)
+    r_guess = opt.diameter_px[0] / 2 if opt.diameter_px[1] / opt.diameter_px[0] < 1.6 else np.mean(opt.diameter_px) / 2
+    blobs: list[Blob] = []
+    rough = [(cx, cy, opt.diameter_px[0] / 2) for cx, cy, _ in cands]
+    strength = [h for _, _, h in cands]
+    failed = []
+    for i, (cx, cy, h) in enumerate(cands):
+        # a candidate inside an accepted blob is the same sphere
+        if any((cx - b.x) ** 2 + (cy - b.y) ** 2 < (0.8 * b.radius) ** 2 for b in blobs):
+            continue
+        # neighbours of comparable strength are likely markers: keep them out of
+        # this one's background; faint ones are part of the background
+        others = [o for j, o in enumerate(rough) if j != i and strength[j] >= 0.3 * h
+                  and (o[0] - cx) ** 2 + (o[1] - cy) ** 2 < (4 * opt.diameter_px[1]) ** 2]
+        others = [o for o in others if not any((o[0] - b.x) ** 2 + (o[1] - b.y) ** 2 < (0.8 * b.radius) ** 2 for b in blobs)] + \
+                 [(b.x, b.y, b.radius) for b in blobs]
+        b = refine(a, cx, cy, r_guess, opt, others, noise, invalid, first=True)
+        if b is None:
+            b = refine(a, cx, cy, r_guess, opt, others, noise, invalid, first=True, plane_test=True)
+        if b is None and h > 3 * opt.threshold and 2 * r_guess <= opt.diameter_px[1]:
+            # a strong peak with no shadow of the expected size: the background
+            # ring may lie inside a larger shadow (a big ball whose core an
+            # 8-bit display flattens); once more, twice as wide, kept when it
+            # is that: larger and round (not a blob over a crowd)
+            b = refine(a, cx, cy, 2 * r_guess, opt, others, noise, invalid)
+            if b is not None and (b.radius < 1.3 * r_guess or b.anisotropy > ROUND_ANISOTROPY):
+                b = None
+        if b is None and h > 3 * opt.threshold:
+            failed.append((cx, cy))   # a strong peak whose background could not be had
+        if b is None or b.snr < opt.min_snr:
+            continue
+        if any((b.x - o.x) ** 2 + (b.y - o.y) ** 2 < (0.8 * o.radius) ** 2 for o in blobs):
+            continue
+        blobs.append(b)
+    # overlap: centroid windows that meet
+    for i, bi in enumerate(blobs):
+        for bj in blobs[i + 1:]:
+            reach = window_reach(bi.radius, bj.radius, opt.blur_px)
+            if (bi.x - bj.x) ** 2 + (bi.y - bj.y) ** 2 < reach**2:
+                for b in (bi, bj):
+                    if "overlap" not in b.flags:
+                        b.flags.append("overlap")
+    kept, merged = [], []
+    for cx, cy, h in ridges:
+        if any((cx - b.x) ** 2 + (cy - b.y) ** 2 < b.radius**2 for b in blobs + merged):
+            continue
+        b = refine(a, cx, cy, r_guess, opt, [(o.x, o.y, o.radius) for o in blobs], noise, invalid)
+        if (b is None or not np.isfinite(b.anisotropy)) and h > 3 * opt.threshold:
+            # a chain of touching shadows across a wall seen end-on: no background
+            # ring to be had for one sphere's window (or one whose second moments
+            # come out negative: no shape); its extent, to be split
+            b = _rough_blob(a, cx, cy, r_guess, opt.blur_px, noise, opt)
+        # (clutter allowed: the neighbours that make a cluster disturb its background)
+        if b is not None and b.snr >= opt.min_snr and b.anisotropy < 3.0 and "truncated" not in b.flags:
+            merged.append(b)   # never a marker by itself: split into spheres or dropped
+    spoilt = []
+    for b in blobs:
+        if b.anisotropy > opt.max_anisotropy and not set(b.flags) & {"truncated", "clutter"}:
+            if b.anisotropy < 3.0:
+                merged.append(b)   # perhaps two or three shadows merged into one blob
+            continue  # rods, edges
+        if b.anisotropy > 2.0 or ("clutter" in b.flags and not chord_like(b)):
+            # not a sphere shadow even allowing for what lies across it (a dense
+            # irregular blob, bone, debris) -- or a sphere beside a plate's edge
+            # that spoilt its window: detect.crowded tries it with a step removed
+            if "clutter" in b.flags and "truncated" not in b.flags:
+                spoilt.append(b)
+            continue
+        kept.append(b)
+    # a strong peak with no background to be had (a plate's edge across its
+    # annulus): handed on as a spoilt blob of the expected size, unmeasured
+    for cx, cy in failed:
+        if any((cx - b.x) ** 2 + (cy - b.y) ** 2 < b.radius**2 for b in blobs):
+            continue
+        # (one that is elongated is a chain, to be split like a merged blob)
+        rough = _rough_blob(a, cx, cy, r_guess, opt.blur_px, noise, opt)
+        if rough is not None:
+            merged.append(rough)
+            continue
+        ix, iy = int(round(cx)), int(round(cy))
+        ring = a[max(iy - int(2 * r_guess), 0):iy + int(2 * r_guess) + 1, max(ix - int(2 * r_guess), 0):ix + int(2 * r_guess) + 1]
+        peak = float(a[iy, ix] - np.median(ring))
+        if peak > 0:
+            spoilt.append(Blob(cx, cy, r_guess, np.inf, peak / (2 * r_guess), peak, 1.0, ["clutter"], 0.0))
+    # a candidate peak as strong as half the frame's lone spheres' may be one;
+    # weaker ones (noise on a broad blot, JPEG texture) are no sphere to look for
+    alone = [h for cx, cy, h in cands if any((cx - b.x) ** 2 + (cy - b.y) ** 2 < (0.8 * b.radius) ** 2
+                                             for b in kept if not b.flags)]
+    floor = _SEED_STRENGTH * float(np.median(alone)) if alone else 0.0
+    return kept, merged, spoilt, noise, invalid, [(cx, cy) for cx, cy, _ in cands], \
+        [(cx, cy) for cx, cy, h in cands if h >= floor]

@@ -1,6 +1,6 @@
 """Where to look in a frame: its downsampled copy, the pixels that are no
 measurement, and the candidate peaks (sphere-like, or short ridges that may
-be merged shadows) that :func:`conecal.detect.blobs.detect_blobs` measures.
+be merged shadows) that :func:`conecal.detect.frame.detect_blobs` measures.
 Units: px, attenuation.
 """
 
@@ -24,11 +24,9 @@ def candidates(a: np.ndarray, opt, invalid: np.ndarray | None = None,
     one to be a single sphere (merged shadows, rods)."""
     f = opt.factor
     rows, cols = a.shape
-    inv_small = None
     if invalid is not None:
         # dead regions become plain background, so their borders raise no peaks
         a = np.where(invalid, np.float32(np.median(a[~invalid]) if (~invalid).any() else 0.0), a)
-        inv_small = small_frame(invalid.astype(np.float32), opt) > 0
     if small is None:
         small = small_frame(a, opt)
     kd = int(np.ceil(opt.diameter_px[1] * 1.5 / f)) | 1
@@ -39,11 +37,7 @@ def candidates(a: np.ndarray, opt, invalid: np.ndarray | None = None,
     sm = cv2.GaussianBlur(top, (0, 0), s)
     # the top-hat rectifies noise (the opening follows its minima), so the
     # threshold is taken against the smoothed top-hat's own robust spread
-    # (on a JPEG's flat blocks, of the steps between them). Over the whole
-    # frame: on an intensifier's, the field's outside (a constant) is a third
-    # of it, and the threshold was set so (10); over the field alone it is
-    # 1.3-4x lower, and a coded helix's frames raised 490 peaks from the
-    # noise behind its thick cylinder (benchmarks/RESULTS.md)
+    # (on a JPEG's flat blocks, of the steps between them)
     sub = sm[::6, ::6]
     base = float(np.median(sub))
     noise = spread_sigma(sub) + 1e-7
@@ -68,11 +62,9 @@ def candidates(a: np.ndarray, opt, invalid: np.ndarray | None = None,
     for i in np.argsort(-h, kind="stable"):
         if blobby[i] or elongated[i]:
             (out if blobby[i] else ridges).append(((xs[i] + 0.5) * f - 0.5, (ys[i] + 0.5) * f - 0.5, float(h[i])))
-    # (the noise of what is a measurement: a dead region's constant is none)
-    noise = float(noise_small(small, opt.max_attenuation, inv_small))
     if with_ridges:
-        return out, noise, ridges
-    return out, noise
+        return out, float(noise_small(small)), ridges
+    return out, float(noise_small(small))
 
 
 def small_frame(a: np.ndarray, opt) -> np.ndarray:

@@ -16,7 +16,7 @@ from . import kernels
 from .crowded import detect_frame
 from .frame import DetectOptions, NonFiniteFrame
 from .gain import MIN_ALONE, linearised, response_lambda, with_background, with_gain_sigma
-from .noise import noise_correlation, noise_pixel, noise_slope, noise_small
+from .noise import noise_correlation, noise_pixel, noise_small
 from .peaks import small_frame
 from .size import MIN_SHADOWS, measured_size
 from .track import track
@@ -137,7 +137,8 @@ def scan_options(scan: Scan, opt: DetectOptions) -> DetectOptions:
         # JPEG, 8-bit or scintillator-blurred frames: noise correlated over a
         # few px, which neighbour differences miss (then every marker looked
         # like clutter)
-        opt = _noise_of(mid, opt)
+        opt = replace(opt, pixel_noise=noise_pixel(mid), noise_kappa=noise_correlation(mid),
+                      noise_reference=noise_small(small_frame(mid, opt)) * opt.factor)
     # the frames measured so far (page -> blobs), in the order they were read
     seen = {}
     if opt.response_lambda is None:
@@ -151,14 +152,8 @@ def scan_options(scan: Scan, opt: DetectOptions) -> DetectOptions:
                 # (the same pixels: the response is monotonic)
                 opt = replace(opt, max_attenuation=linearised(opt.max_attenuation, lam))
             if noise_here:
-                opt = _noise_of(mid, opt)
-    if noise_here:
-        # how the noise grows with the background's level, over the frames a
-        # quarter of the log either side too (a phantom seen at other depths)
-        more = [scan.stack.read(frames_idx[q * len(frames_idx) // 4], check=False) for q in (1, 3)] \
-            if len(frames_idx) >= 4 else []
-        beta, level = noise_slope([mid] + [linearised(f, opt.response_lambda) for f in more], opt.max_attenuation)
-        opt = replace(opt, noise_slope=beta, noise_level=level)
+                opt = replace(opt, pixel_noise=noise_pixel(mid), noise_kappa=noise_correlation(mid),
+                              noise_reference=noise_small(small_frame(mid, opt)) * opt.factor)
     if opt.shadow_px and not opt.size_scale:
         # the middle frame's shadows, and a quarter's either side of it while too few
         def shadows(q):
@@ -174,19 +169,9 @@ def scan_options(scan: Scan, opt: DetectOptions) -> DetectOptions:
             blobs = blobs + shadows(q)
         sized = measured_size(blobs, opt)
         if sized.factor != opt.factor:
-            sized = replace(sized, noise_reference=noise_small(small_frame(mid, sized), sized.max_attenuation)
-                            * sized.factor)
+            sized = replace(sized, noise_reference=noise_small(small_frame(mid, sized)) * sized.factor)
         opt = sized
     return opt
-
-
-def _noise_of(mid: np.ndarray, opt: DetectOptions) -> DetectOptions:
-    """``opt`` with the pixel noise, its correlation factor and the
-    neighbour-difference noise (at ``opt.factor``) of frame ``mid``, over
-    its pixels under ``opt.max_attenuation``."""
-    lim = opt.max_attenuation
-    return replace(opt, pixel_noise=noise_pixel(mid, limit=lim), noise_kappa=noise_correlation(mid, limit=lim),
-                   noise_reference=noise_small(small_frame(mid, opt), lim) * opt.factor)
 
 
 def _response(scan: Scan, frames_idx: list[int], mid: np.ndarray, opt: DetectOptions, seen: dict) -> float:
@@ -352,7 +337,6 @@ def assemble(scan: Scan, opt: DetectOptions, frames_idx: list[int], results: lis
             "options": {"diameter_px": list(opt.diameter_px), "threshold": opt.threshold, "blur_px": opt.blur_px,
                         "pixel_noise": round(opt.pixel_noise, 8), "noise_kappa": round(opt.noise_kappa, 4),
                         "noise_reference": round(opt.noise_reference, 8),
-                        "noise_slope": round(opt.noise_slope, 4), "noise_level": round(opt.noise_level, 6),
                         "max_anisotropy": opt.max_anisotropy, "min_relative_contrast": opt.min_relative_contrast,
                         "size_scale": round(opt.size_scale, 4), "response_lambda": opt.response_lambda or 0.0},
             "reference_mu_px": round(ref, 6), "contrast_gain": gain.document(),

@@ -38,14 +38,12 @@ def peaks_in(m, peaks) -> list:
 
 
 def split(a: np.ndarray, m, R1: float, mu1, blur: float, noise: float, kappa: float, mask_out, invalid,
-          peaks=(), opt=None) -> tuple[np.ndarray, bool] | None:
+          peaks=()) -> tuple[np.ndarray, bool] | None:
     """Spheres (k, 4: x, y, R px, mu per px of chord) that blob ``m`` holds,
     k >= 2, and whether they lie across an edge (see below); or None when
     one sphere explains it as well or the parts are not
     of the frame's spheres (radius ``R1`` px, contrast ``mu1``, None when
-    unknown). ``mask_out``: (x, y, r) of shadows around it, not fitted;
-    ``opt``: the detector's options, whose noise slope sets the noise at the
-    blob's level for the background test.
+    unknown). ``mask_out``: (x, y, r) of shadows around it, not fitted.
 
     A blob whose background was disturbed (flagged clutter: a holder's wall
     under it) is split on the frame with the wall's profile across its edge
@@ -66,7 +64,7 @@ def split(a: np.ndarray, m, R1: float, mu1, blur: float, noise: float, kappa: fl
                 mask_out=mask_out, invalid=invalid)
     # (a crowd flags its blobs clutter too: only a background a quadratic does
     # not follow, its neighbours masked, is an edge)
-    if "clutter" not in m.flags or not structured(a, m.x, m.y, m.radius, blur, noise, invalid, mask_out, opt):
+    if "clutter" not in m.flags or not structured(a, m.x, m.y, m.radius, blur, noise, invalid, mask_out):
         parts = _grow(a, **grow)
         return None if parts is None else (parts, False)
     start = np.array([[m.x, m.y, m.radius, mu0]])
