@@ -102,3 +102,20 @@ def moved(shape: PhantomShape, c: Candidate) -> list[Candidate]:
         out.append(Candidate(c.det[keep], new, R, c.t - R @ og, how=f"{c.how}, {SCREWED}"))
     return out
 
+
+
+def related(points: np.ndarray, a: Candidate, b: Candidate) -> bool:
+    """Whether labellings ``a`` and ``b`` of one frame's detections differ
+    by a partial symmetry of the phantom (``points`` (n, 3) mm): on the
+    detections both name, ``b``'s sphere is where the motion carries
+    ``a``'s. Which of them the detector shows unseen spheres for says
+    nothing then (a coded helix's undetected small beads leave both with
+    as many), so they tie on what they explain."""
+    maps = partial_maps(points)
+    if not maps:
+        return False
+    sa = dict(zip(np.asarray(a.det).tolist(), np.asarray(a.sph).tolist()))
+    pairs = [(sa[d], s) for d, s in zip(np.asarray(b.det).tolist(), np.asarray(b.sph).tolist()) if d in sa]
+    if len(pairs) < 4:
+        return False
+    return any(all(to[i] == j for i, j in pairs) or all(to[j] == i for i, j in pairs) for to in maps)
