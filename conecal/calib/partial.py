@@ -119,3 +119,10 @@ def related(points: np.ndarray, a: Candidate, b: Candidate) -> bool:
     if len(pairs) < 4:
         return False
     return any(all(to[i] == j for i, j in pairs) or all(to[j] == i for i, j in pairs) for to in maps)
+
+
+def screw_tie(shape: PhantomShape, best: Candidate, c: Candidate) -> bool:
+    """Whether ``c`` ties with ``best`` by a partial symmetry of a 3-D
+    phantom (:func:`related`) and explains as many detections (one fewer is
+    the end bead the motion carries off: the end, seen, tells them apart)."""
+    return shape.lattice is None and len(c.sph) >= len(best.sph) and related(shape.points, best, c)

@@ -24,7 +24,7 @@ from ..geometry import matrix_to_rotvec
 from .camera import Camera
 from .candidate import Candidate, assign, refine_pose
 from .lattice import planar_candidates, turned
-from .partial import moved, related
+from .partial import moved, screw_tie
 from .phantom import PhantomShape, symmetry_name
 from .vote import voted_candidates
 
@@ -198,8 +198,7 @@ def search_frame(cam: Camera, shape: PhantomShape, xy: np.ndarray, guess=None,
             continue
         if any(_same_pose(c, r) for r in rivals):
             continue
-        if (c.score >= best.score - 1 or (len(c.sph) >= len(best.sph) and related(shape.points, best, c))) \
-                and c.rms_px <= best.rms_px + opt.tie_px:
+        if (c.score >= best.score - 1 or screw_tie(shape, best, c)) and c.rms_px <= best.rms_px + opt.tie_px:
             rivals.append(c)
     convention = ""
     if shape.symmetries and rivals:

@@ -36,7 +36,7 @@ from ..documents.status import OK, ambiguous
 from .bundle import Bundle
 from .candidate import Candidate, assign, refine_pose, refine_pose_and_terms
 from .lattice import TURNED, turned
-from .partial import related
+from .partial import screw_tie
 from .neighbours import by_neighbours, conventional, guesses, jumps, predicted, same_pose
 from .search import search_frame, unseen_spheres
 
@@ -314,8 +314,8 @@ def _rank(cam, shape, points, xy, cands: list, gate: float, pooled: float, opt, 
     # a helix's screw by a bead -- ties on the detections it explains: the
     # unseen spheres that tell them apart are undetected ones as often)
     tied = [c for c, tw in zip(cands[1:], twin)
-            if (c.score >= best.score - 1 or (len(c.sph) >= len(best.sph) and related(points, best, c)))
-            and not _same(c, best) and not tw and len(c.sph) * (c.rms_px ** 2 - best.rms_px ** 2) / var < opt.mirror_chi2]
+            if (c.score >= best.score - 1 or screw_tie(shape, best, c)) and not _same(c, best) and not tw
+            and len(c.sph) * (c.rms_px ** 2 - best.rms_px ** 2) / var < opt.mirror_chi2]
     if best.rms_px > opt.floor_factor * pooled:
         return None
     # Explaining the most detections within the floor's gate is not enough
