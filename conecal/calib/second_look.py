@@ -36,8 +36,8 @@ from ..documents.status import OK, ambiguous
 from .bundle import Bundle
 from .candidate import Candidate, assign, refine_pose, refine_pose_and_terms
 from .lattice import TURNED, turned
-from .partial import screw_tie
 from .neighbours import by_neighbours, conventional, guesses, jumps, predicted, same_pose
+from .partial import screw_tie
 from .search import search_frame, unseen_spheres
 
 # the statuses a second look may overturn: not a frame with too few markers
