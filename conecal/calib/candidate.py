@@ -37,6 +37,30 @@ class Candidate:
         return len(self.sph) - self.missing
 
 
+def rigid_fit(a: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Rotation A and shift o with A a + o = b in the least-squares sense
+    (Kabsch; ``a``, ``b`` (k, 3) mm paired rows)."""
+    ca, cb = a.mean(0), b.mean(0)
+    U, _, Vt = np.linalg.svd((b - cb).T @ (a - ca))
+    A = U @ np.diag([1.0, 1.0, np.linalg.det(U @ Vt)]) @ Vt
+    return A, cb - A @ ca
+
+
+def relabel(c: Candidate, to: list, points: np.ndarray, how: str, least: float = 4) -> Candidate | None:
+    """Candidate ``c`` with each detection's sphere s renamed ``to[s]`` (None:
+    no sphere there, the detection left unexplained) and the pose moved by
+    the rigid motion carrying the old spheres onto the new (``points`` (n, 3)
+    mm), so that the renamed spheres land where the detections are; None
+    when fewer than ``least`` keep a sphere. ``how`` is appended to ``c.how``."""
+    keep = np.array([to[s] is not None for s in c.sph], bool)
+    if keep.sum() < least:
+        return None
+    old, new = c.sph[keep], np.array([to[s] for s in c.sph[keep]])
+    Rg, og = rigid_fit(points[old], points[new])
+    R = c.R @ Rg.T
+    return Candidate(c.det[keep], new, R, c.t - R @ og, how=f"{c.how}, {how}")
+
+
 def refine_pose(cam: Camera, P: np.ndarray, xy: np.ndarray, R, t, f_scale: float = 2.0):
     """Pose minimising the robust reprojection error of points P (n, 3) phantom
     frame seen at xy (n, 2) px, camera fixed. Returns R, t, residuals (n, 2)."""

@@ -10,7 +10,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from .camera import Camera
-from .candidate import Candidate
+from .candidate import Candidate, relabel
 from .phantom import LATTICE_MAPS, PhantomShape
 
 # how a candidate relabelled by a turn of the lattice says so (``turned``)
@@ -185,15 +185,7 @@ def turned(shape: PhantomShape, points: np.ndarray, c: Candidate) -> list[Candid
         if not np.array_equal(m.max(0) + o, shape.lattice.max(0)):
             continue
         to = [lat.get(tuple(int(v) for v in m[k] + o)) for k in range(len(shape.lattice))]
-        keep = np.array([to[s] is not None for s in c.sph], bool)
-        if keep.sum() < 4:
-            continue
-        old, new = c.sph[keep], np.array([to[s] for s in c.sph[keep]])
-        # the rigid motion carrying each sphere onto its turned place (Kabsch)
-        a, b = points[old] - points[old].mean(0), points[new] - points[new].mean(0)
-        U, _, Vt = np.linalg.svd(b.T @ a)
-        Rg = U @ np.diag([1.0, 1.0, np.linalg.det(U @ Vt)]) @ Vt
-        og = points[new].mean(0) - Rg @ points[old].mean(0)
-        R = c.R @ Rg.T
-        out.append(Candidate(c.det[keep], new, R, c.t - R @ og, how=f"{c.how}, {TURNED}"))
+        moved = relabel(c, to, points, TURNED)
+        if moved is not None:
+            out.append(moved)
     return out

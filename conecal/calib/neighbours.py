@@ -24,7 +24,7 @@ from functools import lru_cache
 import numpy as np
 
 from ..geometry import matrix_to_rotvec, rotvec_to_matrix
-from .candidate import Candidate
+from .candidate import Candidate, rigid_fit
 from .phantom import PhantomShape
 from .search import by_convention
 
@@ -80,10 +80,7 @@ def _twins(points: np.ndarray, perms: list, R, t) -> list:
     relabelling: with A p_j + a = p_perm(j) (rigid), R' = R A^T, t' = t - R' a."""
     out = []
     for p in perms:
-        P, Q = points - points.mean(0), points[p] - points[p].mean(0)
-        U, _, Vt = np.linalg.svd(Q.T @ P)
-        A = U @ np.diag([1, 1, np.linalg.det(U @ Vt)]) @ Vt
-        a = points[p].mean(0) - A @ points.mean(0)
+        A, a = rigid_fit(points, points[p])
         out.append((R @ A.T, t - R @ A.T @ a))
     return out
 

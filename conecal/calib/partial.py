@@ -16,7 +16,7 @@ import functools
 
 import numpy as np
 
-from .candidate import Candidate
+from .candidate import Candidate, relabel, rigid_fit
 from .phantom import PhantomShape
 
 # two spheres are the same place within this share of the phantom's spacing
@@ -26,14 +26,6 @@ _SHARE = 0.5
 # phantoms with more spheres than this are not searched (a grid's are its lattice's)
 _MOST = 200
 SCREWED = "moved by a partial symmetry of the phantom"
-
-
-def _kabsch(a: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Rotation R and shift o with R a + o = b in the least-squares sense (k, 3)."""
-    ca, cb = a.mean(0), b.mean(0)
-    U, _, Vt = np.linalg.svd((b - cb).T @ (a - ca))
-    R = U @ np.diag([1.0, 1.0, np.linalg.det(U @ Vt)]) @ Vt
-    return R, cb - R @ ca
 
 
 @functools.lru_cache(maxsize=16)
@@ -59,7 +51,7 @@ def _maps(key: bytes, n: int) -> tuple:
                     for hh in h:
                         if len({c, int(e), int(hh)}) < 3:
                             continue
-                        R, o = _kabsch(P[[a, b, g]], P[[c, int(e), int(hh)]])
+                        R, o = rigid_fit(P[[a, b, g]], P[[c, int(e), int(hh)]])
                         Q = P @ R.T + o
                         d = np.linalg.norm(Q[:, None] - P[None], axis=-1)
                         j = d.argmin(1)
@@ -90,18 +82,12 @@ def moved(shape: PhantomShape, c: Candidate) -> list[Candidate]:
     if shape.lattice is not None:
         return []
     out = []
-    P = shape.points
-    for to in partial_maps(P):
-        keep = np.array([to[s] >= 0 for s in c.sph], bool)
+    for to in partial_maps(shape.points):
         # (a rival must explain about as many: a motion that keeps few is none)
-        if keep.sum() < max(4, 0.75 * len(c.sph)):
-            continue
-        old, new = c.sph[keep], np.array([to[s] for s in c.sph[keep]])
-        Rg, og = _kabsch(P[old], P[new])
-        R = c.R @ Rg.T
-        out.append(Candidate(c.det[keep], new, R, c.t - R @ og, how=f"{c.how}, {SCREWED}"))
+        m = relabel(c, [None if v < 0 else v for v in to], shape.points, SCREWED, max(4, 0.75 * len(c.sph)))
+        if m is not None:
+            out.append(m)
     return out
-
 
 
 def related(points: np.ndarray, a: Candidate, b: Candidate) -> bool:
