@@ -175,7 +175,11 @@ def test_a_frame_noisier_than_the_scans_reference_measures_its_own_noise():
         return (0.3 + render((260, 260), sph, 1.0) + n).astype(np.float32)
 
     quiet = frame(0, 0.04)
-    opt = DetectOptions(diameter_px=(8.7, 23.2), blur_px=1.0, pixel_noise=noise_pixel(quiet))
+    # (kappa of noise blurred by a Gaussian of 1.2 px, 4 pi s^2: the scan measures
+    # it on a full frame; a 260 px one has too few quiet blocks. With kappa 1 the
+    # markers' σ are 4x short and their model and centroid disagree beyond them)
+    opt = DetectOptions(diameter_px=(8.7, 23.2), blur_px=1.0, pixel_noise=noise_pixel(quiet),
+                        noise_kappa=4 * np.pi * 1.2**2)
     opt = replace(opt, noise_reference=noise_small(small_frame(quiet, opt)) * opt.factor)
     for seed in (1, 2, 3):
         noisy = frame(seed, 0.08)
@@ -306,3 +310,37 @@ def test_an_8_bit_jpeg_of_a_quiet_image_raises_no_shadows_from_its_blocks():
     blobs = detect_frame(img, opt)
     near = [min(np.hypot(b.x - sph[:, 0], b.y - sph[:, 1])) < 1.5 for b in blobs]
     assert sum(near) == len(sph) and all(near)
+
+
+def test_the_black_outside_an_intensifiers_field_is_not_counted_as_noiseless_pixels():
+    """An uncropped intensifier frame is a circular field in black (attenuation
+    above ``max_attenuation``). Counted, that constant read as noiseless pixels:
+    the frame's noise came out at 0.6 of the field's, and on a real recording
+    590 of 650 markers were flagged clutter. The field's own noise flags none."""
+    import cv2
+    from dataclasses import replace
+
+    from conecal.detect import DetectOptions, detect_frame
+    from conecal.detect.noise import noise_pixel
+    from conecal.detect.overlap import render
+
+    rng = np.random.default_rng(11)
+    n = 400
+    yy, xx = np.mgrid[0:n, 0:n]
+    outside = np.hypot(xx - n / 2, yy - n / 2) > 0.42 * n
+    flagged, old_flagged, found = 0, 0, 0
+    for _ in range(2):
+        sph = np.array([[x + rng.uniform(-2, 2), y + rng.uniform(-2, 2), 7.0, 0.08]
+                        for x in (130, 200, 270) for y in (130, 200, 270)])
+        noise = cv2.GaussianBlur(rng.normal(0, 1, (n, n)).astype(np.float32), (0, 0), 0.8)
+        img = (0.4 + render((n, n), sph, 1.0) + 0.01 * noise / noise.std()).astype(np.float32)
+        img[outside] = 6.0
+        assert 0.9 < noise_pixel(img, limit=4.0) / noise_pixel(img[100:300, 100:300]) < 1.3
+        assert noise_pixel(img) < 0.8 * noise_pixel(img, limit=4.0)
+        base = DetectOptions(diameter_px=(10.0, 20.0), blur_px=1.0, noise_kappa=4 * np.pi * 0.8**2)
+        blobs = detect_frame(img, replace(base, pixel_noise=noise_pixel(img, limit=base.max_attenuation)))
+        old = detect_frame(img, replace(base, pixel_noise=noise_pixel(img)))
+        found += sum(any(np.hypot(b.x - s[0], b.y - s[1]) < 1 for b in blobs) for s in sph)
+        flagged += sum("clutter" in b.flags for b in blobs)
+        old_flagged += sum("clutter" in b.flags for b in old)
+    assert found == 18 and flagged <= 2 and old_flagged >= 6

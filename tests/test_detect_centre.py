@@ -8,7 +8,7 @@ from conecal.detect import DetectOptions, detect_frame
 from conecal.detect.centre import MODEL_CENTROID_PX
 from conecal.detect.frame import detect_blobs
 from conecal.detect.noise import noise_correlation, noise_pixel
-from conecal.detect.overlap import fit_group
+from conecal.detect.overlap import fit_group, render
 
 
 def _cone_shadow(sdd, pixel, sod, radius, tilt_deg, ss=5, mu=0.5):
@@ -94,3 +94,52 @@ def test_a_lone_shadows_model_centre_beats_its_centroid_and_its_sigma_holds(corr
     rms_model, rms_centroid = np.sqrt(np.mean(np.square(err_model))), np.sqrt(np.mean(np.square(err_centroid)))
     assert rms_model < 0.7 * rms_centroid
     assert 0.75 < np.std(pulls) < 1.3
+
+
+def test_a_shadow_whose_centroid_a_soft_skirt_pulls_takes_its_model_centre():
+    """A soft skirt beside each shadow (a neighbour's glare, a display's curve
+    over a gradient) pulls the centroid but not the sphere model, which fits
+    the shadow's edge. Where they disagree beyond their noise the marker is
+    measured as a disturbed one (on two backgrounds); before, the centroid
+    stood: 0.019 px RMS against 0.008."""
+    err, sig = [], []
+    for seed in range(2):
+        rng = np.random.default_rng(seed)
+        n = 320
+        sph = np.array([[x + rng.uniform(-2, 2), y + rng.uniform(-2, 2), 7.0, 0.08]
+                        for x in (70, 160, 250) for y in (70, 160, 250)])
+        yy, xx = np.mgrid[0:n, 0:n]
+        a = render((n, n), sph, 1.0) + 0.4
+        for x, y, _, _ in sph:
+            t = rng.uniform(0, 2 * np.pi)
+            a += 0.015 * np.exp(-((xx - x - 15 * np.cos(t)) ** 2 + (yy - y - 15 * np.sin(t)) ** 2) / (2 * 7.0**2))
+        nz = cv2.GaussianBlur(rng.normal(0, 1, (n, n)).astype(np.float32), (0, 0), 0.7)
+        a = (a + 0.006 * nz / nz.std()).astype(np.float32)
+        opt = DetectOptions(diameter_px=(9.0, 24.0), blur_px=1.0, pixel_noise=noise_pixel(a),
+                            noise_kappa=noise_correlation(a))
+        blobs = detect_frame(a, opt)
+        for p in sph:
+            b = min(blobs, key=lambda b: np.hypot(b.x - p[0], b.y - p[1]))
+            err += [b.x - p[0], b.y - p[1]]
+            sig += [b.sigma, b.sigma]
+    err, sig = np.array(err), np.array(sig)
+    assert np.sqrt(np.mean(err**2)) < 0.012 and 0.6 < np.std(err / sig) < 1.3
+
+
+def test_the_odd_misfit_sees_a_second_sphere_not_a_profile_shaped_wrong():
+    """``odd_misfit``: a lone shadow blurred more than the model thinks leaves
+    an even residual (disc misfit many times the noise, odd part ~1, as white
+    noise reads); a smaller sphere beside it leaves an odd one."""
+    from conecal.detect.overlap import disc_misfit, odd_misfit
+
+    rng = np.random.default_rng(3)
+    n, noise = 60, 0.004
+    blurred = render((n, n), np.array([[30.2, 29.7, 7.0, 0.08]]), 2.2)
+    beside = render((n, n), np.array([[30.2, 29.7, 7.0, 0.08], [36.2, 29.7, 4.0, 0.05]]), 1.0)
+    for img, even in ((blurred, True), (beside, False)):
+        a = (img + 0.3 + rng.normal(0, noise, (n, n))).astype(np.float32)
+        fit = fit_group(a, np.array([[30.0, 30.0, 7.0, 0.08]]), 1.0, noise, quadratic=True)
+        on, _ = disc_misfit(a, fit, 1.0, noise)
+        odd = odd_misfit(a, fit, 1.0, noise)
+        assert on > 20
+        assert (odd < 1.5) if even else (odd > 20)

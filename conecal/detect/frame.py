@@ -395,7 +395,7 @@ def detect_blobs(a: np.ndarray, opt: DetectOptions):
     if opt.noise_reference and noise > 1.3 * opt.noise_reference:
         # noisier than the frame the scan's noise was measured on (a frame of
         # another dose or gain): every shadow there read as clutter
-        pixel = noise_pixel(a)
+        pixel = noise_pixel(a, limit=opt.max_attenuation)
     noise = max(noise, pixel)
     r_guess = opt.diameter_px[0] / 2 if opt.diameter_px[1] / opt.diameter_px[0] < 1.6 else np.mean(opt.diameter_px) / 2
     blobs: list[Blob] = []

@@ -86,12 +86,25 @@ def noise_correlation(img: np.ndarray, blocks: tuple[int, ...] = (6, 10, 12), si
     return float(np.clip(np.mean(ratios), 1.0, 100.0))
 
 
-def noise_pixel(img: np.ndarray, size: int = 7) -> float:
+def noise_pixel(img: np.ndarray, size: int = 7, limit: float | None = None) -> float:
     """Robust per-pixel noise sigma including noise correlated over a few
     pixels (JPEG, a scintillator's spread, 8-bit quantisation): the MAD of the
     image minus its ``size`` x ``size`` box mean. Neighbour differences see
     only the uncorrelated part, which on such images is half the scatter a
-    background fit meets."""
+    background fit meets.
+
+    Pixels at or above ``limit`` (attenuation; ``DetectOptions.max_attenuation``:
+    outside an intensifier's circular field, dead, burnt-in text), and those
+    within ``size`` px of them, are no measurement and are left out: an
+    uncropped intensifier frame is a third black, and counted, its noise read
+    0.56 of the field's, so that 590 of 650 real markers were flagged clutter."""
     a = np.ascontiguousarray(img[::2, ::2] if min(img.shape) > 256 else img, dtype=np.float32)
-    d = (a - cv2.blur(a, (size, size), borderType=cv2.BORDER_REPLICATE)).ravel()
-    return spread_sigma(d) / np.sqrt(1 - 1 / size**2) + 1e-7
+    d = a - cv2.blur(a, (size, size), borderType=cv2.BORDER_REPLICATE)
+    if limit is not None:
+        bad = ~(a < limit)   # (NaN counts as no measurement)
+        if bad.any():
+            ok = cv2.dilate(bad.astype(np.uint8), np.ones((size, size), np.uint8)) == 0
+            # (a frame with almost nothing under the limit keeps every pixel)
+            if ok.sum() >= 1000:
+                d = d[ok]
+    return spread_sigma(d.ravel()) / np.sqrt(1 - 1 / size**2) + 1e-7

@@ -217,6 +217,32 @@ def disc_misfit(a: np.ndarray, fit, blur: float, noise: float, mask_out=(), inva
     return (float(z2[on].mean()) if on.any() else np.inf), (float(z2[off].mean()) if off.sum() >= 20 else np.inf)
 
 
+def odd_misfit(a: np.ndarray, fit, blur: float, noise: float, mask_out=(), invalid=None) -> float:
+    """Mean squared odd part (under a half turn about the sphere's fitted
+    centre) of a one-sphere :func:`fit_group` result's residual on ``a``, on
+    its disc (R + 2 blur + 1), in units of the pixel noise's variance and
+    doubled so that white noise reads 1 (a pixel and its mirror interpolated
+    between four read somewhat less). A second sphere in the shadow, or
+    anything beside it, leaves an odd residual; a profile the model shapes
+    a little wrong (a display's curve, an intensifier's glare about the
+    shadow) leaves an even one, which :func:`disc_misfit` counts too."""
+    box, sph, _, bg, _, _ = fit
+    c0, q0, c1, q1 = box
+    wgt = mask_weights(box, mask_out, blur, invalid)
+    res = ((a[q0:q1, c0:c1] - group_model(box, sph, bg, blur)) / noise).astype(np.float32)
+    x, y, R = float(sph[0, 0] - c0), float(sph[0, 1] - q0), float(sph[0, 2])
+    turn = cv2.getRotationMatrix2D((x, y), 180.0, 1.0)
+    mirror = cv2.warpAffine(res, turn, (res.shape[1], res.shape[0]), flags=cv2.INTER_LINEAR,
+                            borderMode=cv2.BORDER_CONSTANT, borderValue=np.nan)
+    mw = cv2.warpAffine(wgt.astype(np.float32), turn, (res.shape[1], res.shape[0]), flags=cv2.INTER_NEAREST)
+    yy, xx = np.mgrid[0:res.shape[0], 0:res.shape[1]]
+    on = ((xx - x) ** 2 + (yy - y) ** 2 <= (R + 2 * blur + 1) ** 2) & (wgt > 0) & (mw > 0) & np.isfinite(mirror)
+    if on.sum() < 20:
+        return np.inf
+    odd = 0.5 * (res[on] - mirror[on]) * np.exp(-0.5 * np.clip(render_box(box, sph, blur)[on], 0.0, 8.0))
+    return float(2 * np.mean(odd.astype(np.float64) ** 2))
+
+
 def components(n: int, pairs) -> np.ndarray:
     """Connected-component label of each of ``n`` nodes joined by ``pairs`` (i, j)."""
     from scipy.sparse import coo_matrix

@@ -137,7 +137,7 @@ def scan_options(scan: Scan, opt: DetectOptions) -> DetectOptions:
         # JPEG, 8-bit or scintillator-blurred frames: noise correlated over a
         # few px, which neighbour differences miss (then every marker looked
         # like clutter)
-        opt = replace(opt, pixel_noise=noise_pixel(mid), noise_kappa=noise_correlation(mid),
+        opt = replace(opt, pixel_noise=noise_pixel(mid, limit=opt.max_attenuation), noise_kappa=noise_correlation(mid),
                       noise_reference=noise_small(small_frame(mid, opt)) * opt.factor)
     # the frames measured so far (page -> blobs), in the order they were read
     seen = {}
@@ -152,7 +152,7 @@ def scan_options(scan: Scan, opt: DetectOptions) -> DetectOptions:
                 # (the same pixels: the response is monotonic)
                 opt = replace(opt, max_attenuation=linearised(opt.max_attenuation, lam))
             if noise_here:
-                opt = replace(opt, pixel_noise=noise_pixel(mid), noise_kappa=noise_correlation(mid),
+                opt = replace(opt, pixel_noise=noise_pixel(mid, limit=opt.max_attenuation), noise_kappa=noise_correlation(mid),
                               noise_reference=noise_small(small_frame(mid, opt)) * opt.factor)
     if opt.shadow_px and not opt.size_scale:
         # the middle frame's shadows, and a quarter's either side of it while too few
