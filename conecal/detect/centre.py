@@ -50,12 +50,6 @@ _DISAGREE = 9.0
 # shadow to this mean squared residual (in the pixel noise's variance; 1.1-1.2
 # on the first renderer's intensifier grids)
 _AROUND_HOLDS = 2.0
-# an unflagged shadow over this times the frame's sphere radius, and this
-# times its attenuation, where the phantom has one sphere size, is several
-# spheres on top of each other (the frame's spheres scatter 0.8-1.25x about
-# their median, ``size.like_neighbours``)
-_ONE_SIZE = 1.3
-_ONE_VOLUME = 1.4
 # a centroid's σ over its model's is 2-3 (5-95 %: 1.5-3.8 on the independent
 # helix, 2.0-3.1 on 8-bit JPEG); far above, the centroid's σ holds more than
 # noise (a step beside the shadow: 3.0 px against the model's 0.04, where the
@@ -94,15 +88,6 @@ def model_centre(a: np.ndarray, b: Blob, opt: DetectOptions, noise: float, inval
         return b
     if b.flags:
         return _apart_centre(a, b, opt, noise, invalid, others, typical)
-    R1, mu1 = typical
-    if mu1 is not None and len(set(opt.shadow_px)) == 1 and b.radius > _ONE_SIZE * R1 \
-            and b.mu_px * b.radius**3 > _ONE_VOLUME * mu1 * R1**3:
-        # A phantom of one sphere size casts no shadow this much larger, and
-        # holding this much more attenuation, than the frame's: spheres nearly
-        # on top of each other (three within 3 px on the first renderer's ball
-        # phantom read one 1.37x the frame's radius, unflagged, σ 0.036 px, 0.9 px
-        # from each). Said to be so, with σ as a pair's.
-        return replace(b, flags=["overlap"], sigma=max(b.sigma, 0.25 * b.radius))
     start, noise, fit = _own_fit(a, b, opt, noise, invalid, others)
     if fit is None:
         return b
