@@ -13,11 +13,14 @@ projected centre from the centroid (0.045 px there) moves both alike.
 
 The centroid stays where the model cannot be trusted to replace it: a fit
 that fails, a fitted size or contrast far from the window's, a centroid
-whose σ holds more than noise, a centre the centroid disagrees with beyond
-what their noise allows (something in the
-patch the model does not hold: a holder's wall beside the shadow moved the
-model 0.2-0.4 px where the centroid was 0.02-0.1 px off), or a fit no surer
-than the centroid. A flagged shadow that stands apart from the others is
+whose σ holds more than noise, or a fit no surer than the centroid. A
+centre the centroid disagrees with beyond what their noise allows says the
+patch holds something the model does not (a holder's wall beside the shadow
+moved the model 0.2-0.4 px where the centroid was 0.02-0.1 px off; a display's
+curve over glare moved centroids 0.1-0.25 px where the models were right):
+where the model's background holds the patch around the shadow, the marker
+is then measured as a flagged one is, σ covering the gap, and flagged
+``clutter`` beyond 3 σ. A flagged shadow that stands apart from the others is
 measured by its model too, on the background an edge's profile or a
 quadratic gives, with σ for how much the centre depends on that choice
 (:func:`_apart_centre`). Units: px, attenuation.
@@ -103,7 +106,7 @@ def model_centre(a: np.ndarray, b: Blob, opt: DetectOptions, noise: float, inval
         # display's curve over a glare gradient moved centroids 0.15-0.25 px
         # radially where the model was 0.02-0.08 px off; a wall beside a bead
         # moved the model instead). Measured as a disturbed marker is (on two
-        # backgrounds, .``_apart_centre``), with σ covering the gap; flagged
+        # backgrounds, ``_apart_centre``), with σ covering the gap; flagged
         # clutter beyond _DISAGREE. (Only where the model's quadratic holds the
         # patch around the shadow: beside a plate's step that a centroid was
         # measured without, the model is what the step moved.)
