@@ -113,7 +113,7 @@ def model_centre(a: np.ndarray, b: Blob, opt: DetectOptions, noise: float, inval
         wide = float(np.sqrt(b.sigma**2 + gap2 / 2))
         flag = gap2 > _DISAGREE * (b.sigma**2 + s_fit**2)
         m = _apart_centre(a, replace(b, flags=sorted(set(b.flags) | {"clutter"}), sigma=wide), opt, noise, invalid,
-                          others, typical, odd=True)
+                          others, typical, odd=True, own=(start, noise, fit))
         return replace(m, flags=m.flags if flag else b.flags)
     if not np.isfinite(s_fit) or not s_fit < b.sigma <= _NOISE_LIKE * s_fit \
             or gap2 > _AGREE * (b.sigma**2 + s_fit**2):
@@ -125,7 +125,7 @@ def model_centre(a: np.ndarray, b: Blob, opt: DetectOptions, noise: float, inval
 
 
 def _apart_centre(a: np.ndarray, b: Blob, opt: DetectOptions, noise: float, invalid, others, typical,
-                  odd: bool = False) -> Blob:
+                  odd: bool = False, own=None) -> Blob:
     """A flagged marker (``overlap``: measured with its neighbours' models
     removed; ``clutter``: a disturbed background) whose shadow stands apart
     from every other (no disc overlaps its own), measured by its own sphere
@@ -146,7 +146,8 @@ def _apart_centre(a: np.ndarray, b: Blob, opt: DetectOptions, noise: float, inva
     the model holds one sphere's contrast per px of chord (two read more)."""
     if any(np.hypot(x - b.x, y - b.y) < r + b.radius for x, y, r in others):
         return b
-    start, noise, fit = _own_fit(a, b, opt, noise, invalid, others)
+    # (``own``: :func:`_own_fit`'s result when the caller has it already)
+    start, noise, fit = own if own is not None else _own_fit(a, b, opt, noise, invalid, others)
     if fit is None:
         return b
     # (a second sphere in the shadow, which its elongation may have shown:

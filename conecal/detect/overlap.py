@@ -229,7 +229,8 @@ def odd_misfit(a: np.ndarray, fit, blur: float, noise: float, mask_out=(), inval
     box, sph, _, bg, _, _ = fit
     c0, q0, c1, q1 = box
     wgt = mask_weights(box, mask_out, blur, invalid)
-    res = ((a[q0:q1, c0:c1] - group_model(box, sph, bg, blur)) / noise).astype(np.float32)
+    spheres = render_box(box, sph, blur)
+    res = ((a[q0:q1, c0:c1] - spheres - background_image(box, bg)) / noise).astype(np.float32)
     x, y, R = float(sph[0, 0] - c0), float(sph[0, 1] - q0), float(sph[0, 2])
     turn = cv2.getRotationMatrix2D((x, y), 180.0, 1.0)
     mirror = cv2.warpAffine(res, turn, (res.shape[1], res.shape[0]), flags=cv2.INTER_LINEAR,
@@ -239,7 +240,7 @@ def odd_misfit(a: np.ndarray, fit, blur: float, noise: float, mask_out=(), inval
     on = ((xx - x) ** 2 + (yy - y) ** 2 <= (R + 2 * blur + 1) ** 2) & (wgt > 0) & (mw > 0) & np.isfinite(mirror)
     if on.sum() < 20:
         return np.inf
-    odd = 0.5 * (res[on] - mirror[on]) * np.exp(-0.5 * np.clip(render_box(box, sph, blur)[on], 0.0, 8.0))
+    odd = 0.5 * (res[on] - mirror[on]) * np.exp(-0.5 * np.clip(spheres[on], 0.0, 8.0))
     return float(2 * np.mean(odd.astype(np.float64) ** 2))
 
 

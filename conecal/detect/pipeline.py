@@ -137,8 +137,7 @@ def scan_options(scan: Scan, opt: DetectOptions) -> DetectOptions:
         # JPEG, 8-bit or scintillator-blurred frames: noise correlated over a
         # few px, which neighbour differences miss (then every marker looked
         # like clutter)
-        opt = replace(opt, pixel_noise=noise_pixel(mid, limit=opt.max_attenuation), noise_kappa=noise_correlation(mid),
-                      noise_reference=noise_small(small_frame(mid, opt)) * opt.factor)
+        opt = _noise_of(mid, opt)
     # the frames measured so far (page -> blobs), in the order they were read
     seen = {}
     if opt.response_lambda is None:
@@ -152,8 +151,7 @@ def scan_options(scan: Scan, opt: DetectOptions) -> DetectOptions:
                 # (the same pixels: the response is monotonic)
                 opt = replace(opt, max_attenuation=linearised(opt.max_attenuation, lam))
             if noise_here:
-                opt = replace(opt, pixel_noise=noise_pixel(mid, limit=opt.max_attenuation), noise_kappa=noise_correlation(mid),
-                              noise_reference=noise_small(small_frame(mid, opt)) * opt.factor)
+                opt = _noise_of(mid, opt)
     if opt.shadow_px and not opt.size_scale:
         # the middle frame's shadows, and a quarter's either side of it while too few
         def shadows(q):
@@ -172,6 +170,14 @@ def scan_options(scan: Scan, opt: DetectOptions) -> DetectOptions:
             sized = replace(sized, noise_reference=noise_small(small_frame(mid, sized)) * sized.factor)
         opt = sized
     return opt
+
+
+def _noise_of(mid: np.ndarray, opt: DetectOptions) -> DetectOptions:
+    """``opt`` with frame ``mid``'s pixel noise (over its pixels under
+    ``opt.max_attenuation``), the noise's correlation factor and the
+    neighbour-difference noise at ``opt.factor`` (attenuation units)."""
+    return replace(opt, pixel_noise=noise_pixel(mid, limit=opt.max_attenuation), noise_kappa=noise_correlation(mid),
+                   noise_reference=noise_small(small_frame(mid, opt)) * opt.factor)
 
 
 def _response(scan: Scan, frames_idx: list[int], mid: np.ndarray, opt: DetectOptions, seen: dict) -> float:
