@@ -48,10 +48,14 @@ def difference_sigma(d, axis=None, centre: bool = True):
     return mad_sigma(d, axis=axis, centre=centre) / np.sqrt(2.0)
 
 
-def paired_behind(r2_a: np.ndarray, r2_b: np.ndarray) -> tuple[float, float]:
+def paired_behind(r2_a: np.ndarray, r2_b: np.ndarray, clusters=None) -> tuple[float, float]:
     """Paired held-out chi^2 by which ``a`` trails ``b`` (per-observation held-out
-    squared residuals of each) and its standard error."""
+    squared residuals of each) and its standard error. ``clusters`` (one label
+    per observation, e.g. its frame): the error from the clusters' sums, for
+    observations that share a cause within a cluster (a frame's own term)."""
     d = np.asarray(r2_a) - np.asarray(r2_b)
+    if clusters is not None:
+        d = np.bincount(np.unique(clusters, return_inverse=True)[1], weights=d)
     return float(d.sum()), (float(np.sqrt(len(d) * d.var())) if len(d) > 1 else 0.0)
 
 

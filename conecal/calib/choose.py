@@ -8,6 +8,12 @@ residuals. The family with the lowest score wins, except that the most
 specific family (fewest parameters) whose paired held-out difference to
 it is within max(3, two standard errors) is chosen instead: a flexible
 field earns its place only by predicting markers it was not fitted on.
+The standard error is taken over frames (each frame's summed difference),
+not markers: a gain one or two frames make is no gain for the detector
+(an independent generator's undistorted biplane: two wrongly named frames,
+fitted by their own twists, made a per-frame twist win over the pinhole
+at 0.088 against 0.207 px held-out, marker by marker; frame by frame it
+does not, the pinhole is chosen and the two frames are rejected).
 """
 
 from __future__ import annotations
@@ -105,7 +111,7 @@ def choose_family(fits: dict, obs: Observations, points, radius, n_folds: int = 
     for f in sorted(fams, key=lambda f: (n_params(f, n_frames), ok[f.name].sum())):
         if n_params(f, n_frames) >= n_params(best, n_frames):
             break
-        if not_worse(*paired_behind(ok[f.name], ok[best.name])):
+        if not_worse(*paired_behind(ok[f.name], ok[best.name], obs.slot)):
             pick = f
             break
     rows = []
