@@ -7,7 +7,7 @@ import numpy as np
 from conecal.calib.bundle import Observations, adjust, family_named
 from conecal.calib.camera import Camera
 from conecal.calib.phantom import describe_phantom
-from conecal.calib.run import _from_before
+from conecal.calib.restart import from_before
 from conecal.geometry import ConeGeometry, rotvec_to_matrix
 from conecal.geometry.distortion import Distortion
 from conecal.simulate.carm import ball_phantom, random_poses
@@ -43,9 +43,9 @@ def test_the_looks_fit_is_restarted_from_the_last_looks_when_that_ends_lower():
     shape = describe_phantom(pts, list(range(len(pts))), radius=1.0)
     frames = [{"frame": k} for k in range(len(poses.R))]
     fits = {fam.name: poor}
-    _from_before(fits, (good, [fr["frame"] for fr in frames]), frames, cam, obs, shape, 0.0)
+    from_before(fits, (good, [fr["frame"] for fr in frames]), frames, cam, obs, shape, 0.0)
     assert fits[fam.name].fit.chi2 < 1.1 * good.fit.chi2
     # another set of frames: the slots do not match, nothing is restarted
     fits = {fam.name: poor}
-    _from_before(fits, (good, [1, 0, 2, 3, 4]), frames, cam, obs, shape, 0.0)
+    from_before(fits, (good, [1, 0, 2, 3, 4]), frames, cam, obs, shape, 0.0)
     assert fits[fam.name] is poor

@@ -31,6 +31,7 @@ from .alternatives import centred_alternative, restarted_alternative
 from .camera import Camera
 from .choose import choose_family, choose_refinement
 from .phantom import describe_phantom
+from .restart import from_before
 from .candidate import assign, refine_pose
 from .search import SearchOptions, search_frame
 from .second_look import second_look
@@ -223,7 +224,7 @@ def calibrate_free(scan, markers: dict, geometry, opt: FreeOptions = FreeOptions
 def _solve(fams, cam, usable, dets, shape, radius, opt: FreeOptions, before=None):
     """Bundle, distortion choice and frame judgement until no frame is
     rejected; returns (final, fits, choice, refinement, pinhole, usable, obs).
-    ``before``: see ``_from_before``."""
+    ``before``: see ``restart.from_before``."""
     bar = 0.0
     for attempt in range(6):
         obs, fits, usable = _fit_families(fams, cam, usable, dets, shape, radius, opt, before)
@@ -274,7 +275,7 @@ def _refine_phantom(chosen, choice, fits, fams, cam, obs: Observations, shape, r
 def _fit_families(fams, cam, usable, dets, shape, radius, opt, before=None):
     """Bundle every family on ``usable`` frames: from the search's poses, then
     again after re-gathering markers at the most flexible fit's prediction
-    (and from ``before``: ``_from_before``)."""
+    (and from ``before``: ``restart.from_before``)."""
     obs, slots = _observations(usable, dets)
     R0 = np.array([fr["search"].best.R for fr in usable])
     t0 = np.array([fr["search"].best.t for fr in usable])
@@ -283,7 +284,7 @@ def _fit_families(fams, cam, usable, dets, shape, radius, opt, before=None):
     fits = {"none": base}
     for fam in fams[1:]:
         fits[fam.name] = adjust(fam, cam, obs, shape.points, radius, R0, t0, start=_nested(fam, fits, obs, shape))
-    _from_before(fits, before, usable, cam, obs, shape, radius)
+    from_before(fits, before, usable, cam, obs, shape, radius)
     flexible = min(fits.values(), key=lambda b: float(np.mean(np.sum(b.residual_px ** 2, 1))))
     obs, kept = _regather(flexible, obs, usable, dets, shape, radius, opt)
     idx = [slots[fr["frame"]] for fr in kept]
@@ -294,31 +295,10 @@ def _fit_families(fams, cam, usable, dets, shape, radius, opt, before=None):
         # detector) creeps; 30 evaluations are enough to score it
         fits[fam.name] = adjust(fam, cam, obs, shape.points, radius, R0, t0, start=_nested(fam, fits, obs, shape),
                                 max_nfev=30)
-    _from_before(fits, before, kept, cam, obs, shape, radius)
+    from_before(fits, before, kept, cam, obs, shape, radius)
     for s, fr in enumerate(kept):
         fr["slot"] = s
     return obs, fits, kept
-
-
-def _from_before(fits: dict, before, frames: list, cam, obs: Observations, shape, radius) -> None:
-    """``before``: (the last look's final bundle, its frames in slot order).
-    When ``frames`` are the same, ``fits[name]`` of its family is replaced by
-    that family fitted from it, if that ends at a lower chi-square. A frame's
-    twist about its own centre has false minima (a weak twist about a far
-    centre) the start from the search's poses can fall into on one look and
-    not the one before (carm_images ball3d_ii: two of 12 frames' twists went
-    from 9 and 15 to about 0, their centres 670 px out, and ten of one
-    frame's 24 markers were set aside as off the prediction). The phantom
-    as its file has it, as every fit here."""
-    if before is None or [fr["frame"] for fr in frames] != before[1]:
-        return
-    b = before[0]
-    name = b.family.name
-    if name not in fits:
-        return
-    alt = adjust(b.family, cam, obs, shape.points, radius, None, None, start=b, max_nfev=30, points_sigma=0.0)
-    if alt.fit.chi2 < fits[name].fit.chi2:
-        fits[name] = alt
 
 
 def _nested(fam: Family, fits: dict, obs: Observations, shape) -> Bundle:
