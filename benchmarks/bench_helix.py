@@ -83,9 +83,13 @@ def main():
         for frames, truth in data:
             found = []
             # the typed size: the declared spheres' shadows at the nominal magnification, scaled
+            # (and, as detect takes it from phantom.csv, the helix's extent over
+            # the source distance the typed size implies)
             typed = DetectOptions(diameter_px=(nominal[0] * 0.9 * scale, nominal[1] * 1.1 * scale),
                                   shadow_px=tuple(d * gen.SDD / gen.SOD / gen.PITCH * scale
-                                                  for d in (gen.D_SMALL, gen.D_LARGE)))
+                                                  for d in (gen.D_SMALL, gen.D_LARGE)),
+                                  depth_extent=(np.hypot(gen.HELIX_RADIUS, gen.HELIX_LENGTH / 2) + gen.D_LARGE / 2)
+                                  * scale / gen.SOD)
             if not a.typed_size:
                 # as `conecal detect` does once per scan (pipeline.scan_options): the
                 # middle frame's shadows measured at the typed size

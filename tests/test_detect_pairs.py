@@ -56,3 +56,67 @@ def test_lone_spheres_on_a_thicker_background_are_not_taken_for_hidden_pairs():
         dens.append(b.mu_px)
         assert np.hypot(b.x - x, b.y - y) < 0.3 and b.sigma < 0.2 and "overlap" not in b.flags, (x, y, b)
     assert max(dens) > 1.8 * np.median(dens)    # the drift is there
+
+
+def _frame_of(sph, rng, shape=SHAPE):
+    """Linear attenuation of ``sph`` (x, y, R, mu) on a gentle slope, with noise."""
+    a = 0.3 + 0.1 * np.arange(shape[1])[None, :] / shape[1] + render(shape, np.array(sph), 1.0)
+    return (a + rng.normal(0, 0.004, shape)).astype(np.float32)
+
+
+def test_spheres_a_little_apart_in_one_round_shadow_are_flagged_by_their_attenuation():
+    """Two or three spheres of a phantom of one declared size, 0.1-0.3 of a
+    diameter apart, make one round shadow wider and no denser than one
+    sphere's (an intensifier's ball phantom: three in one shadow, σ 0.04 px,
+    0.9-2.5 px from each); its attenuation is two or three spheres'. Each
+    such marker is flagged overlap with a σ that covers the nearest sphere
+    (or the spheres are measured apart); lone spheres stay unflagged."""
+    rng = np.random.default_rng(5)
+    lone = [[x + rng.uniform(-1, 1), y + rng.uniform(-1, 1), 5.0, 0.06] for x in (30, 90, 150, 210, 270)
+            for y in (30, 220)]
+    groups, sph = [], list(lone)
+    for x, n, sep in ((60, 2, 0.3), (160, 3, 0.2), (260, 2, 0.15)):
+        c = np.array([x, 125.0]) + rng.uniform(-1, 1, 2)
+        ang = rng.uniform(0, 2 * np.pi) + np.arange(n) * 2 * np.pi / n
+        pts = c + sep * 10 / 2 * np.c_[np.cos(ang), np.sin(ang)]
+        groups.append(pts)
+        sph += [[*p, 5.0, 0.06] for p in pts]
+    a = _frame_of(sph, rng)
+    opt = DetectOptions(diameter_px=(6, 16), pixel_noise=noise_pixel(a), shadow_px=(10.0,), depth_extent=0.025)
+    blobs = detect_frame(a, opt)
+    for pts in groups:
+        near = [b for b in blobs if np.min(np.hypot(pts[:, 0] - b.x, pts[:, 1] - b.y)) < 4]
+        assert near
+        for b in near:
+            e = float(np.min(np.hypot(pts[:, 0] - b.x, pts[:, 1] - b.y)))
+            assert e < 0.3 or ("overlap" in b.flags and b.sigma > 0.5 * e), (e, b.sigma, b.flags)
+        assert any("overlap" in b.flags or len(near) == len(pts) for b in near)
+    for x, y, _, _ in lone:
+        b = min(blobs, key=lambda b: np.hypot(b.x - x, b.y - y))
+        assert np.hypot(b.x - x, b.y - y) < 0.2 and not b.flags, (x, y, b)
+
+
+def test_a_larger_sphere_the_declaration_left_out_is_not_taken_for_hidden_spheres():
+    """A phantom declared with one sphere size holding two larger balls (a
+    real box phantom's: 3.5-4x the attenuation of the small ones): they are
+    single spheres, measured as such, not flagged overlap."""
+    rng = np.random.default_rng(6)
+    sph = [[x + rng.uniform(-1, 1), y + rng.uniform(-1, 1), 5.0, 0.06] for x in (30, 90, 150, 210, 270)
+           for y in (40, 210)]
+    big = [[120.0, 125.0, 7.8, 0.06], [200.0, 125.0, 7.8, 0.06]]
+    a = _frame_of(sph + big, rng)
+    blobs = detect_frame(a, DetectOptions(diameter_px=(6, 20), pixel_noise=noise_pixel(a), shadow_px=(10.0,), depth_extent=0.025))
+    for x, y, _, _ in big + sph:
+        b = min(blobs, key=lambda b: np.hypot(b.x - x, b.y - y))
+        assert np.hypot(b.x - x, b.y - y) < 0.2 and "overlap" not in b.flags, (x, y, b)
+
+
+def test_the_depth_ratio_follows_the_measured_shadow_size():
+    """A phantom 5 % of the nominal source distance about its centre: two of
+    its spheres' magnifications differ by up to 1.05/0.95; when the shadows
+    measure 0.8 of the typed size, the source is farther (the typed
+    magnification was 25 % high), and the ratio 1.04/0.96."""
+    opt = DetectOptions(diameter_px=(6, 16), depth_extent=0.05)
+    assert np.isclose(opt.depth_ratio, 1.05 / 0.95)
+    assert np.isclose(DetectOptions(diameter_px=(6, 16), depth_extent=0.05, size_scale=0.8).depth_ratio, 1.04 / 0.96)
+    assert DetectOptions(diameter_px=(6, 16)).depth_ratio == 0.0

@@ -106,16 +106,16 @@ def detect_frame(a: np.ndarray, opt: DetectOptions) -> list[Blob]:
     # (a wire's or a screw's length that a seed or a split took for a sphere)
     out = [b for b, rod in zip(out, on_rods(a, out, opt.blur_px, invalid)) if not rod]
     out = [elongation_bound(b, opt.blur_px, opt.max_anisotropy) if "overlap" in b.flags else b for b in out]
-    # (a marker is a measured centre with a sigma: one without never leaves
-    # here, where it made the whole scan's markers file invalid)
-    out = [b for b in hidden_pairs(a, out, opt.blur_px) if np.isfinite((b.x, b.y, b.sigma)).all()]
-    # (one shadow, one marker: two paths that measured the same sphere gave
-    # an independent helix's bead twice, 0.05 px apart; the surer one stays)
+    # (a centre without a sigma made the whole scan's markers file invalid)
+    out = [b for b in out if np.isfinite((b.x, b.y, b.sigma)).all()]
+    # (one shadow, one marker: a helix's bead was measured twice 0.05 px apart;
+    # the surer stays, then is judged for hidden spheres (judged before, three
+    # spheres' shadow lost to a part of it, σ 0.016 px 1 px from each)
     one: list[Blob] = []
     for b in sorted(out, key=lambda b: b.sigma):
         if all(np.hypot(b.x - o.x, b.y - o.y) > 0.25 * min(b.radius, o.radius) for o in one):
             one.append(b)
-    out = [b for b in out if any(b is o for o in one)]
+    out = hidden_pairs(a, [b for b in out if any(b is o for o in one)], opt.blur_px, opt.shadow_px, opt.depth_ratio)
     # a marker whose σ covers a second sphere (on top of it, or beside it in an
     # elongated shadow) is fitted as two or three, where they explain it
     out = fit_covered(a, out, opt, noise, invalid, peaks, R1, mu1)

@@ -81,11 +81,23 @@ class DetectOptions:
     # the declared spheres' shadow diameters (px) at the nominal magnification,
     # from which ``diameter_px`` was made; empty when the user gave the range
     shadow_px: tuple[float, ...] = ()
+    # the phantom's extent about its centre over the nominal source distance:
+    # how far two of its spheres' magnifications may differ in one frame (0:
+    # unknown, then no sphere is judged by its attenuation alone)
+    depth_extent: float = 0.0
     # measured over nominal shadow size (:mod:`conecal.detect.size`; 0: not measured)
     size_scale: float = 0.0
     # the image's response, measured once per scan (:func:`conecal.detect.gain.response_lambda`):
     # frames are measured in (1 - exp(-lambda a)) / lambda; 0: in attenuation a; None: not measured
     response_lambda: float | None = None
+
+    @property
+    def depth_ratio(self) -> float:
+        """The largest ratio of two of the phantom's spheres' magnifications in
+        one frame, (1 + e) / (1 - e) for its extent e over the source distance
+        the measured shadow size implies (0: unknown)."""
+        e = self.depth_extent * (self.size_scale or 1.0)
+        return (1 + e) / (1 - e) if 0 < e < 0.95 else 0.0
 
     @property
     def factor(self) -> int:

@@ -24,6 +24,7 @@ from .frame import moment_trace
 from .overlap import disc_misfit, fit_group, group_box, joint_sigma, neighbours
 from .ring import ring_mask
 from .rod import line_of, run_on
+from .size import size_ratio
 from .split import ADEQUATE
 
 # a lone sphere's anisotropy is 1.03 median, 1.10 at the 95th percentile (an
@@ -51,6 +52,12 @@ _HIDDEN_RARE = 0.15
 # a pair no split separates lies up to about this fraction of its radius
 # from their midpoint (0.15-0.33 on the independent helix)
 _HIDDEN_OFFSET = 0.25
+# ... or a blob holding this many times one sphere's attenuation of its size
+# class, and no declared sphere's (:func:`_heavy`)
+_HEAVY = 1.45
+# ... up to three spheres' (3 + noise): beyond it, one sphere of a larger size
+# the declaration left out (a real box phantom's two large balls: 3.5-4.1)
+_HEAVIEST = 3.2
 # two spheres fitted where one marker's σ covered them (:func:`on_top`):
 # at least this many of the frame's radii apart, explaining the blob this
 # much better than one sphere, and off by this fraction of their radius
@@ -192,12 +199,17 @@ def elongation_bound(m, blur: float, most: float):
     return replace(m, sigma=h) if h > m.sigma else m
 
 
-def hidden_pairs(a: np.ndarray, blobs: list, blur: float) -> list:
+def hidden_pairs(a: np.ndarray, blobs: list, blur: float, shadow_px=(), depth_ratio: float = 0.0) -> list:
     """``blobs`` with those that may be two shadows nearly on top of each
     other (a second sphere hidden within a fraction of the radius, which no
     split separates and no elongation shows) flagged overlap, their sigma at
     least their possible offset from either sphere (px): a blob far denser
-    than the frame's spheres at its background's level, where few are.
+    than the frame's spheres at its background's level, where few are; or,
+    given the declared spheres' nominal shadow diameters ``shadow_px`` (px)
+    and the phantom's ``depth_ratio`` (``DetectOptions.depth_ratio``), one
+    holding more attenuation than one sphere of any declared size at any
+    depth (:func:`_heavy`: spheres that lie a little apart make a wider,
+    less dense shadow, which only its total attenuation tells from one).
 
     A blob's density (attenuation per px of chord) drifts with the
     background's level on a log or gamma display (1.4-1.7x on a plate's
@@ -212,9 +224,28 @@ def hidden_pairs(a: np.ndarray, blobs: list, blur: float) -> list:
     ok = np.isfinite(level) & np.array([b.mu_px > 0 for b in blobs])
     if ok.sum() < 8:
         return blobs
-    # a robust straight line of log density against the level, 2.5 sigma (MAD)
-    # rejection; a flat one when the levels hardly differ
-    lv, dv = level[ok], dens[ok]
+    excess, held = _on_level_line(dens, level, ok)
+    size = np.array([b.radius for b in blobs])
+    dense = ok & held & (excess >= _HIDDEN_DENSITY) & (excess * (size / np.median(size)) ** 3 >= _HIDDEN_ATTENUATION)
+    dense |= _heavy(blobs, level, ok, shadow_px, depth_ratio)
+    if dense.sum() > _HIDDEN_RARE * len(blobs):
+        return blobs
+    out = list(blobs)
+    for i in np.flatnonzero(dense):
+        b = out[i]
+        h = _stretch(b, blur) if np.isfinite(b.anisotropy) else 0.0
+        out[i] = replace(b, sigma=float(np.hypot(b.sigma, max(h, _HIDDEN_OFFSET * b.radius))),
+                         flags=sorted(set(b.flags) | {"overlap"}), pair=True)
+    return out
+
+
+def _on_level_line(v: np.ndarray, level: np.ndarray, ok: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """exp of each blob's ``v`` (a log quantity) over a robust straight line of
+    ``v`` against the background's ``level`` (2.5 sigma MAD rejection; flat
+    when the levels hardly differ), fitted on the ``ok`` blobs; and whether
+    the line is held at the blob's level (three fitted blobs within
+    ``_HIDDEN_LEVEL``). 0 and False where not ``ok``."""
+    lv, dv = level[ok], v[ok]
     A = np.c_[np.ones(len(lv)), lv] if np.ptp(lv) > 0.02 else np.ones((len(lv), 1))
     keep = np.ones(len(lv), bool)
     for _ in range(3):
@@ -225,22 +256,50 @@ def hidden_pairs(a: np.ndarray, blobs: list, blur: float) -> list:
             break
         keep = keep_new
     line = np.r_[line, 0.0][:2]
-    excess = np.where(ok, np.exp(dens - line[0] - line[1] * np.where(ok, level, 0.0)), 0.0)
+    excess = np.where(ok, np.exp(v - line[0] - line[1] * np.where(ok, level, 0.0)), 0.0)
     # (no claim where the line is not held by spheres on a background of about
     # that level: a plate's thick part under two spheres, on a log display)
-    held = np.array([np.sum(np.abs(lv[keep] - v) <= _HIDDEN_LEVEL) >= 3 if f else False for v, f in zip(level, ok)])
-    excess = np.where(held, excess, 0.0)
-    size = np.array([b.radius for b in blobs])
-    dense = ok & (excess >= _HIDDEN_DENSITY) & (excess * (size / np.median(size)) ** 3 >= _HIDDEN_ATTENUATION)
-    if dense.sum() > _HIDDEN_RARE * len(blobs):
-        return blobs
-    out = list(blobs)
-    for i in np.flatnonzero(dense):
-        b = out[i]
-        h = _stretch(b, blur) if np.isfinite(b.anisotropy) else 0.0
-        out[i] = replace(b, sigma=float(np.hypot(b.sigma, max(h, _HIDDEN_OFFSET * b.radius))),
-                         flags=sorted(set(b.flags) | {"overlap"}), pair=True)
-    return out
+    held = np.array([np.sum(np.abs(lv[keep] - x) <= _HIDDEN_LEVEL) >= 3 if f else False for x, f in zip(level, ok)])
+    return excess, held
+
+
+def _heavy(blobs: list, level: np.ndarray, ok: np.ndarray, shadow_px, depth_ratio: float) -> np.ndarray:
+    """Which blobs hold ``_HEAVY`` (at least 1.2 q^2, q = ``depth_ratio``:
+    a sphere nearer the source casts a shadow q^2 times as heavy, its
+    attenuation summed over pixels scaling with the shadow's area) to ``_HEAVIEST``
+    times the attenuation (density times radius cubed) of one sphere of
+    their size class and not that of one sphere of any declared size at any
+    depth (within 1/(1.4 q^2) to that):
+    each blob is put in the class of the nearest nominal diameter
+    ``shadow_px`` (px) at the frame's measured scale
+    (:func:`.size.size_ratio`), and one sphere's attenuation is that of its
+    four nearest shadows whose background's ``level`` is within
+    ``_HIDDEN_LEVEL`` of its own (median; an intensifier magnifies its
+    periphery, a log display deepens shadows on a thick background), scaled
+    by the classes' diameters cubed; no claim with fewer than three. Beyond
+    ``_HEAVIEST`` a blob is a larger sphere the declaration left out; a blob
+    far stretched (anisotropy over 1.6) is left to the elongation's tests."""
+    heavy = np.zeros(len(blobs), bool)
+    d = np.unique(np.asarray(shadow_px, float))
+    lo = max(_HEAVY, 1.2 * depth_ratio ** 2)
+    if not d.size or ok.sum() < 8 or not depth_ratio or lo >= _HEAVIEST:
+        return heavy
+    r = np.array([b.radius for b in blobs])
+    s = size_ratio(2 * r[ok], d) or 1.0
+    c = np.abs(np.log(np.maximum(2 * r, 1e-9))[:, None] - np.log(s * d)[None, :]).argmin(1)
+    unit = np.array([max(b.mu_px, 1e-12) * b.radius ** 3 for b in blobs]) / d[c] ** 3
+    xy = np.array([[b.x, b.y] for b in blobs])
+    ref = np.flatnonzero(ok)
+    for i in ref:
+        others = ref[(ref != i) & (np.abs(level[ref] - level[i]) <= _HIDDEN_LEVEL)]
+        if len(others) < 3:
+            continue
+        near = others[np.argsort(np.hypot(*(xy[others] - xy[i]).T))[:4]]
+        ratio = unit[i] / np.median(unit[near]) * (d[c[i]] / d) ** 3   # against one sphere of each class
+        one = np.any((ratio > 1 / (1.4 * depth_ratio ** 2)) & (ratio < lo))
+        stretched = not np.isfinite(blobs[i].anisotropy) or blobs[i].anisotropy > 1.6
+        heavy[i] = lo <= ratio[c[i]] <= _HEAVIEST and not one and not stretched
+    return heavy
 
 
 def on_top(a: np.ndarray, m, R1: float, mu1, blur: float, noise: float, kappa: float, mask_out, invalid,

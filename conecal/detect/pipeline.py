@@ -67,8 +67,12 @@ def options_for_scan(scan: Scan, *, threshold: float = 10.0, blur_px: float = 1.
             raise InputError(f"{scan.root / 'scan.yaml'}: markers.diameter: a {max(ds):g} mm sphere casts a "
                              f"{max(px):.3g} px shadow at pixel pitch {pitch:g} mm and magnification {m:.3g} "
                              f"(expected 0.5 px to the detector's {size} px; give --diameter-px to override)")
+        extent = 0.0
+        if scan.phantom is not None and len(scan.phantom.positions):
+            pts = np.asarray(scan.phantom.positions, float)
+            extent = (float(np.max(np.linalg.norm(pts - pts.mean(0), axis=1))) + max(ds) / 2) / cfg.nominal.sod
         return DetectOptions(diameter_px=(0.6 * min(px), 1.6 * max(px)), threshold=threshold, blur_px=blur_px,
-                             shadow_px=tuple(float(d) for d in px))
+                             shadow_px=tuple(float(d) for d in px), depth_extent=extent)
     return DetectOptions(diameter_px=tuple(float(d) for d in diameter_px), threshold=threshold, blur_px=blur_px)
 
 
