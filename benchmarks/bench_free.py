@@ -414,7 +414,7 @@ def main(argv=None) -> int:
               f"{np.median([r['time_conecal_s'] / r['time_opencv_s'] for r in fin]):.1f}; one bundle of the chosen "
               f"family from the search's poses / OpenCV: "
               f"{np.median([r['time_conecal_ba_s'] / r['time_opencv_s'] for r in fin]):.1f}")
-        print(f"# 1-sigma coverage of poses: median {np.median([r['pose_cover_1sigma'] for r in fin]):.2f} "
+        print(f"# 1-sigma coverage of poses: median {np.nanmedian([r['pose_cover_1sigma'] for r in fin]):.2f} "
               f"(target 0.68 +- 0.07); whitened (poses and intrinsics with their correlations): per scan "
               + " ".join(f"{r['whitened_cover_1sigma']:.2f}" for r in fin)
               + f", pooled chi2/n {np.mean([r['whitened_chi2_per_n'] for r in fin]):.2f}")
