@@ -266,11 +266,11 @@ def _on_level_line(v: np.ndarray, level: np.ndarray, ok: np.ndarray) -> tuple[np
 def _heavy(blobs: list, level: np.ndarray, ok: np.ndarray, shadow_px, depth_ratio: float) -> np.ndarray:
     """Which blobs hold ``_HEAVY`` (at least 1.2 q^2, q = ``depth_ratio``:
     a sphere nearer the source casts a shadow q^2 times as heavy, its
-    attenuation summed over pixels scaling with the shadow's area) to ``_HEAVIEST``
-    times the attenuation (density times radius cubed) of one sphere of
-    their size class and not that of one sphere of any declared size at any
-    depth (within 1/(1.4 q^2) to that):
-    each blob is put in the class of the nearest nominal diameter
+    attenuation summed over pixels scaling with the shadow's area) to
+    ``_HEAVIEST`` times the attenuation (density times radius cubed) of one
+    sphere of their size class and not that of one sphere of any declared
+    size at any depth (within 1/(1.4 q^2) to that): each blob is put in the
+    class of the nearest nominal diameter
     ``shadow_px`` (px) at the frame's measured scale
     (:func:`.size.size_ratio`), and one sphere's attenuation is that of its
     four nearest shadows whose background's ``level`` is within
