@@ -81,9 +81,8 @@ class DetectOptions:
     # the declared spheres' shadow diameters (px) at the nominal magnification,
     # from which ``diameter_px`` was made; empty when the user gave the range
     shadow_px: tuple[float, ...] = ()
-    # the phantom's extent about its centre over the nominal source distance:
-    # how far two of its spheres' magnifications may differ in one frame (0:
-    # unknown, then no sphere is judged by its attenuation alone)
+    # the phantom's extent about its centre over the nominal source distance (0:
+    # unknown, then no sphere is judged by its attenuation alone: ``depth_ratio``)
     depth_extent: float = 0.0
     # measured over nominal shadow size (:mod:`conecal.detect.size`; 0: not measured)
     size_scale: float = 0.0
@@ -93,9 +92,8 @@ class DetectOptions:
 
     @property
     def depth_ratio(self) -> float:
-        """The largest ratio of two of the phantom's spheres' magnifications in
-        one frame, (1 + e) / (1 - e) for its extent e over the source distance
-        the measured shadow size implies (0: unknown)."""
+        """The largest ratio of two of the phantom's spheres' magnifications in one frame,
+        (1 + e) / (1 - e), e its extent over the measured size's source distance (0: unknown)."""
         e = self.depth_extent * (self.size_scale or 1.0)
         return (1 + e) / (1 - e) if 0 < e < 0.95 else 0.0
 
