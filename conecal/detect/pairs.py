@@ -24,7 +24,7 @@ from .frame import moment_trace
 from .overlap import disc_misfit, fit_group, group_box, joint_sigma, neighbours
 from .ring import ring_mask
 from .rod import line_of, run_on
-from .size import size_ratio
+from .size import nearest_shadows, size_ratio
 from .split import ADEQUATE
 
 # a lone sphere's anisotropy is 1.03 median, 1.10 at the 95th percentile (an
@@ -287,15 +287,15 @@ def _heavy(blobs: list, level: np.ndarray, ok: np.ndarray, shadow_px, depth_rati
     r = np.array([b.radius for b in blobs])
     s = size_ratio(2 * r[ok], d) or 1.0
     c = np.abs(np.log(np.maximum(2 * r, 1e-9))[:, None] - np.log(s * d)[None, :]).argmin(1)
-    unit = np.array([max(b.mu_px, 1e-12) * b.radius ** 3 for b in blobs]) / d[c] ** 3
-    xy = np.array([[b.x, b.y] for b in blobs])
+    unit = {id(b): max(b.mu_px, 1e-12) * b.radius ** 3 / d[k] ** 3 for b, k in zip(blobs, c)}
     ref = np.flatnonzero(ok)
     for i in ref:
-        others = ref[(ref != i) & (np.abs(level[ref] - level[i]) <= _HIDDEN_LEVEL)]
-        if len(others) < 3:
+        same = [blobs[j] for j in ref if j != i and abs(level[j] - level[i]) <= _HIDDEN_LEVEL]
+        if len(same) < 3:
             continue
-        near = others[np.argsort(np.hypot(*(xy[others] - xy[i]).T))[:4]]
-        ratio = unit[i] / np.median(unit[near]) * (d[c[i]] / d) ** 3   # against one sphere of each class
+        near = nearest_shadows(blobs[i].x, blobs[i].y, same)
+        # against one sphere of each class
+        ratio = unit[id(blobs[i])] / np.median([unit[id(o)] for o in near]) * (d[c[i]] / d) ** 3
         one = np.any((ratio > 1 / (1.4 * depth_ratio ** 2)) & (ratio < lo))
         stretched = not np.isfinite(blobs[i].anisotropy) or blobs[i].anisotropy > 1.6
         heavy[i] = lo <= ratio[c[i]] <= _HEAVIEST and not one and not stretched
