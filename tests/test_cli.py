@@ -26,6 +26,20 @@ def test_version_and_help():
         assert sub.exit_code == 0 and "Examples" in sub.output
 
 
+def test_a_command_imports_only_its_own_stage():
+    """``conecal --version`` or one command does not import every stage (it
+    took seconds on each call of a Makefile or a pipeline)."""
+    import subprocess
+    import sys
+
+    code = ("import sys; from click.testing import CliRunner; from conecal.cli.main import cli; "
+            "r = CliRunner().invoke(cli, ['compare', '--help']); assert r.exit_code == 0, r.output; "
+            "print(sorted(m for m in ('conecal.detect', 'conecal.diagnose', 'conecal.calib', 'conecal.rpgrid') "
+            "if m in sys.modules))")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert out.stdout.strip() == "[]", out.stdout
+
+
 def test_usage_errors_exit_2(tmp_path):
     assert run("simulate", "bogus", tmp_path / "x").exit_code == 2
     assert run("simulate", "linear", tmp_path / "x", "--effect", "gremlins").exit_code == 2

@@ -7,6 +7,7 @@ terminated (SIGTERM, SIGHUP) -> 128 + the signal's number.
 
 from __future__ import annotations
 
+import importlib
 import signal
 import sys
 
@@ -53,9 +54,25 @@ def _one_line(exc) -> str:
     return "".join(c if c.isprintable() or c == " " else repr(c)[1:-1] for c in str(exc))
 
 
+# subcommand -> its module under conecal.cli, in the order ``--help`` lists them;
+# a module is imported only when its command runs (or help lists them all):
+# importing every stage took seconds before ``conecal --version`` answered
+_COMMANDS = {"simulate": "simulate", "detect": "detect", "merge": "merge", "fit-linear": "fit_linear",
+             "fit-rotation": "fit_rotation", "fit-pose": "fit_pose", "rp-grid": "rp_grid", "diagnose": "diagnose",
+             "report": "report", "export": "export", "compare": "compare", "schema": "schema"}
+
+
 class ConecalGroup(click.Group):
     def parse_args(self, ctx, args):
         return super().parse_args(ctx, _global_flags_first(args))
+
+    def list_commands(self, ctx):
+        return list(_COMMANDS)
+
+    def get_command(self, ctx, name):
+        if name not in _COMMANDS:
+            return None
+        return importlib.import_module(f"{__package__}.{_COMMANDS[name]}").command
 
     def invoke(self, ctx):
         try:
@@ -106,15 +123,3 @@ def cli(ctx, verbose, quiet):
     ctx.ensure_object(dict)
     ctx.obj["verbosity"] = -1 if quiet else verbose
     _terminate_like_interrupt()
-
-
-def _register():
-    from . import compare, detect, diagnose, export, fit_linear, fit_pose, fit_rotation, merge, report, rp_grid, schema, \
-        simulate
-
-    for mod in (simulate, detect, merge, fit_linear, fit_rotation, fit_pose, rp_grid, diagnose, report, export, compare,
-                schema):
-        cli.add_command(mod.command)
-
-
-_register()
