@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import numpy as np
-from scipy.special import ndtri
+from scipy.special import bdtrc, ndtri
 
 # sigma of a normal distribution per median absolute deviation: 1 / Phi^-1(3/4)
 MAD_TO_SIGMA = 1.4826
@@ -57,6 +57,19 @@ def paired_behind(r2_a: np.ndarray, r2_b: np.ndarray, clusters=None) -> tuple[fl
     if clusters is not None:
         d = np.bincount(np.unique(clusters, return_inverse=True)[1], weights=d)
     return float(d.sum()), (float(np.sqrt(len(d) * d.var())) if len(d) > 1 else 0.0)
+
+
+def mostly_behind(r2_a: np.ndarray, r2_b: np.ndarray, clusters, p: float = 1e-3, tie: float = 1.0) -> bool:
+    """Whether ``a`` trails ``b`` in more clusters than chance allows: a
+    one-sided sign test over the clusters' summed differences of held-out
+    squared residuals (those within ``tie`` of 0 left out) at level ``p``.
+    A gain that nearly every frame shares but a few hold most of is
+    significant here while the clusters' standard error (``paired_behind``),
+    dominated by those few, is not."""
+    d = np.asarray(r2_a) - np.asarray(r2_b)
+    d = np.bincount(np.unique(clusters, return_inverse=True)[1], weights=d)
+    d = d[np.abs(d) > tie]
+    return len(d) > 0 and float(bdtrc(int(np.sum(d > 0)) - 1, len(d), 0.5)) < p
 
 
 def not_worse(behind: float, se: float) -> bool:

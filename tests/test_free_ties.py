@@ -12,10 +12,10 @@ from conecal.calib.camera import Camera
 from conecal.calib.candidate import Candidate
 from conecal.calib.phantom import describe_phantom
 from conecal.calib.run import FreeOptions, _judge
-from conecal.calib.search import search_frame
+from conecal.calib.search import SearchResult, held_back, search_frame
 from conecal.calib.second_look import _own_terms, _refit
 from conecal.geometry import ConeGeometry, rotvec_to_matrix
-from conecal.documents.status import OK
+from conecal.documents.status import OK, ambiguous
 from conecal.geometry.distortion import Distortion
 from conecal.simulate.carm import grid_phantom
 
@@ -165,3 +165,25 @@ def test_a_rejected_frame_does_not_lower_the_limit_the_next_one_is_held_to():
     dropped, limit, ok = _judged(rms[:5], bar=limit)
     assert not dropped and all(ok) and limit == pytest.approx(0.35)
 
+
+
+def _found(n_spheres: int, rms: float = 0.5) -> SearchResult:
+    c = Candidate(np.arange(n_spheres), np.arange(n_spheres), np.eye(3), np.zeros(3), rms)
+    return SearchResult(OK, c)
+
+
+def test_a_frame_the_nominal_camera_explains_by_a_handful_of_spheres_waits_for_the_second_look():
+    # (the third renderer's cage: 6-9 of ~20 detections at 2-3 px, named
+    # wrong, beside frames explaining 25-28 spheres)
+    results = [_found(26), _found(28), _found(25), _found(7, 2.9), _found(12, 1.4),
+               SearchResult(ambiguous("ambiguous_identity", "tie"), Candidate(np.arange(6), np.arange(6),
+                                                                              np.eye(3), np.zeros(3), 3.0))]
+    n_dets = [27, 28, 26, 20, 20, 20]
+    held = held_back(results, n_dets)
+    assert [h is not None for h in held] == [False, False, False, True, False, False]
+    assert held[3].reason == "no_pose" and "7 of 20" in held[3].detail
+    # (12 of 20: more than half its own frame's detections)
+    # a frame of few detections, all explained, is not weak
+    assert held_back(results[:3] + [_found(7)], [27, 28, 26, 8]) == [None] * 4
+    # fewer than three frames would be left: nothing held back
+    assert held_back([_found(26), _found(25), _found(7)], [27, 26, 20]) == [None] * 3

@@ -33,7 +33,7 @@ from .choose import choose_family, choose_refinement
 from .phantom import describe_phantom
 from .restart import from_before
 from .candidate import assign, refine_pose
-from .search import SearchOptions, search_frame
+from .search import SearchOptions, held_back, search_frame
 from .second_look import second_look
 
 
@@ -179,8 +179,12 @@ def calibrate_free(scan, markers: dict, geometry, opt: FreeOptions = FreeOptions
         frames.append({"frame": k, "search": res, "status": res.status})
         if progress:
             progress(n + 1, len(order))
+    weak = held_back([fr["search"] for fr in frames], [len(dets[fr["frame"]][0]) for fr in frames])
+    for fr, why in zip(frames, weak):
+        fr["status"] = why or fr["status"]
     usable = [fr for fr in frames if fr["status"].ok]
-    say(f"identified {len(usable)}/{len(frames)} frames from the pattern")
+    say(f"identified {len(usable)}/{len(frames)} frames from the pattern"
+        + (f" ({sum(w is not None for w in weak)} more weakly, left to the second look)" if any(weak) else ""))
     if len(usable) < 2:
         reasons = sorted({fr["status"].sentence for fr in frames})
         raise FitError(f"{len(usable)} of {len(frames)} frames identified; a calibration needs 2 or more "

@@ -220,6 +220,34 @@ def search_frame(cam: Camera, shape: PhantomShape, xy: np.ndarray, guess=None,
     return SearchResult(OK, best, [], convention)
 
 
+def held_back(results: list, n_dets: list, share: float = 0.5, least: int = 3) -> list:
+    """Per frame, None or a ``no_pose`` status for an ``ok`` search result
+    (``results``: SearchResult per frame; ``n_dets``: each frame's detection
+    count) whose identification explains fewer than ``share`` of its own
+    frame's detections and of the median ok frame's spheres: left out of the
+    first bundle for the second look, with the calibrated camera, to take or
+    refuse. Nothing is held back when fewer than ``least`` frames would stay.
+
+    (The nominal camera leaves an intensifier's edge several px off, so a
+    frame whose right pose was not voted can be "explained" by a handful of
+    spheres at 2-3 px: the third renderer's cage, 28 beads, 6-9 spheres at
+    2.3-3.5 px in 6 of 22 frames, nearly all named wrong. The bundle's
+    re-gathering usually rejects them, but one that held 6 markers at 0.75 px
+    entered the first bundle, moved its distortion, and a millimetre of
+    search depth cost 3 frames.)"""
+    n = [len(r.best.sph) if r.status.ok and r.best is not None else 0 for r in results]
+    strong = [k for k in n if k]
+    if not strong:
+        return [None] * len(results)
+    median = float(np.median(strong))
+    out = [rejected("no_pose", f"the nominal camera's best identification explains {k} of {d} markers "
+                    f"({r.best.rms_px:.2f} px RMS) against a median of {median:.0f} spheres in this scan's "
+                    f"frames, and none did better with the calibrated camera")
+           if k and k < share * d and k < share * median else None
+           for r, k, d in zip(results, n, n_dets)]
+    return out if sum(k > 0 for k in n) - sum(o is not None for o in out) >= least else [None] * len(results)
+
+
 def _explains_most(cam: Camera, shape: PhantomShape, xy: np.ndarray, best: Candidate, rivals: list,
                    convention: str, guess, opt: SearchOptions):
     """Tied labellings of a grid told apart by the detections they explain:
