@@ -232,9 +232,8 @@ def held_back(results: list, n_dets: list, share: float = 0.5, least: int = 3) -
     frame whose right pose was not voted can be "explained" by a handful of
     spheres at 2-3 px: the third renderer's cage, 28 beads, 6-9 spheres at
     2.3-3.5 px in 6 of 22 frames, nearly all named wrong. The bundle's
-    re-gathering usually rejects them, but one that held 6 markers at 0.75 px
-    entered the first bundle, moved its distortion, and a millimetre of
-    search depth cost 3 frames.)"""
+    re-gathering usually rejects them, but one that kept 6 markers entered
+    the first bundle at 0.75 px and bent its fit before it was rejected.)"""
     n = [len(r.best.sph) if r.status.ok and r.best is not None else 0 for r in results]
     strong = [k for k in n if k]
     if not strong:
