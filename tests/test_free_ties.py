@@ -13,7 +13,7 @@ from conecal.calib.candidate import Candidate
 from conecal.calib.phantom import describe_phantom
 from conecal.calib.run import FreeOptions, _judge
 from conecal.calib.search import SearchResult, held_back, search_frame
-from conecal.calib.second_look import _own_terms, _refit
+from conecal.calib.second_look import _own_terms, _refit, _worse_by
 from conecal.geometry import ConeGeometry, rotvec_to_matrix
 from conecal.documents.status import OK, ambiguous
 from conecal.geometry.distortion import Distortion
@@ -187,3 +187,28 @@ def test_a_frame_the_nominal_camera_explains_by_a_handful_of_spheres_waits_for_t
     assert held_back(results[:3] + [_found(7)], [27, 28, 26, 8]) == [None] * 4
     # fewer than three frames would be left: nothing held back
     assert held_back([_found(26), _found(25), _found(7)], [27, 26, 20]) == [None] * 3
+
+
+def test_a_rival_explaining_more_spheres_is_judged_on_as_many_as_the_best_explains():
+    # (a helix's right labelling, 20 spheres, one of them 0.4 px off, against
+    # a screw-shifted one of 19 at the noise: compared over all 20 it missed
+    # the tie and the shifted one was taken)
+    cam = _camera()
+    rng = np.random.default_rng(4)
+    points = rng.uniform(-30, 30, (20, 3))
+    R, t = np.eye(3), np.array([0.0, 0.0, 0.0])
+    ideal = cam.project(points @ R.T + t)
+    noise = rng.normal(0, 0.07, ideal.shape)
+    xy = ideal + noise
+    xy[7] += [0.4, 0.0]
+    ids = np.arange(20)
+    right = Candidate(ids, ids, R, t, float(np.sqrt(np.mean(np.sum((ideal - xy) ** 2, 1)))))
+    rest = ids[ids != 7][:19]
+    shifted = Candidate(rest, rest, R, t, float(np.sqrt(np.mean(np.sum(noise[rest] ** 2, 1)))))
+    # over all it explains, the right one is worse by its one far marker ...
+    over_all = 20 * (right.rms_px ** 2 - shifted.rms_px ** 2)
+    assert over_all > 0.08
+    # ... over its 19 closest, it is no worse than the 19 the other explains
+    assert _worse_by(cam, points, xy, right, shifted) < 0.01
+    # a rival explaining fewer is judged over what it explains, as before
+    assert _worse_by(cam, points, xy, shifted, right) == pytest.approx(19 * (shifted.rms_px ** 2 - right.rms_px ** 2))
