@@ -48,6 +48,11 @@ def difference_sigma(d, axis=None, centre: bool = True):
     return mad_sigma(d, axis=axis, centre=centre) / np.sqrt(2.0)
 
 
+def _cluster_sums(d: np.ndarray, clusters) -> np.ndarray:
+    """``d`` summed per cluster label (one label per value)."""
+    return np.bincount(np.unique(clusters, return_inverse=True)[1], weights=d)
+
+
 def paired_behind(r2_a: np.ndarray, r2_b: np.ndarray, clusters=None) -> tuple[float, float]:
     """Paired held-out chi^2 by which ``a`` trails ``b`` (per-observation held-out
     squared residuals of each) and its standard error. ``clusters`` (one label
@@ -55,7 +60,7 @@ def paired_behind(r2_a: np.ndarray, r2_b: np.ndarray, clusters=None) -> tuple[fl
     observations that share a cause within a cluster (a frame's own term)."""
     d = np.asarray(r2_a) - np.asarray(r2_b)
     if clusters is not None:
-        d = np.bincount(np.unique(clusters, return_inverse=True)[1], weights=d)
+        d = _cluster_sums(d, clusters)
     return float(d.sum()), (float(np.sqrt(len(d) * d.var())) if len(d) > 1 else 0.0)
 
 
@@ -66,8 +71,7 @@ def mostly_behind(r2_a: np.ndarray, r2_b: np.ndarray, clusters, p: float = 1e-3,
     A gain that nearly every frame shares but a few hold most of is
     significant here while the clusters' standard error (``paired_behind``),
     dominated by those few, is not."""
-    d = np.asarray(r2_a) - np.asarray(r2_b)
-    d = np.bincount(np.unique(clusters, return_inverse=True)[1], weights=d)
+    d = _cluster_sums(np.asarray(r2_a) - np.asarray(r2_b), clusters)
     d = d[np.abs(d) > tie]
     return len(d) > 0 and float(bdtrc(int(np.sum(d > 0)) - 1, len(d), 0.5)) < p
 
