@@ -41,6 +41,18 @@ def test_homography_pose_round_trip():
     assert np.allclose(R2, R, atol=1e-8) and np.allclose(t2, t, atol=1e-6)
 
 
+def test_a_homography_taking_the_origin_to_infinity_stays_finite():
+    # H[2, 2] = 0: scaled by it, the entries were 1e14 of rounding, or inf and
+    # nan (a divide warning on the free-pose benchmark's lattices)
+    H = np.array([[1.0, 0.0, 1.0], [0.0, 1.0, 1.0], [1.0, 1.0, 0.0]])
+    src = np.array([[i, j] for i in range(1, 4) for j in range(1, 4)], float)
+    h = np.column_stack([src, np.ones(len(src))]) @ H.T
+    H2 = homography(src, h[:, :2] / h[:, 2:])
+    assert np.isfinite(H2).all() and np.abs(H2).max() < 1e6
+    h2 = np.column_stack([src, np.ones(len(src))]) @ H2.T
+    assert np.allclose(h2[:, :2] / h2[:, 2:], h[:, :2] / h[:, 2:], atol=1e-9)
+
+
 @pytest.mark.parametrize("family,frame_intrinsics,points_sigma", [(f.name, None, None) for f in FAMILIES] +
                          [("radial+S per frame", {"sdd": 5.0, "c0": 3.0, "r0": 3.0}, None), ("none", {"c0": 3.0}, None),
                           ("radial+S+tangential, S per frame", None, 0.1)])

@@ -30,7 +30,8 @@ def _fit_map(ij: np.ndarray, xy: np.ndarray) -> np.ndarray:
 
 
 def homography(src: np.ndarray, dst: np.ndarray) -> np.ndarray:
-    """Normalised DLT: 3x3 H with dst ~ H src (both (n, 2), n >= 4)."""
+    """Normalised DLT: 3x3 H with dst ~ H src (both (n, 2), n >= 4), scaled
+    to H[2, 2] = 1 where that is finite."""
     def norm(p):
         m = p.mean(0)
         s = np.sqrt(2) / max(np.mean(np.linalg.norm(p - m, axis=1)), 1e-12)
@@ -45,7 +46,9 @@ def homography(src: np.ndarray, dst: np.ndarray) -> np.ndarray:
     A[1::2, 6:9] = -d[:, 1:2] * s
     H = np.linalg.svd(A)[2][-1].reshape(3, 3)
     H = np.linalg.inv(Td) @ H @ Ts
-    return H / H[2, 2]
+    # (H is defined up to scale; H[2, 2] is 0 where the plane's origin maps to
+    # infinity, as for a degenerate lattice of nearly collinear points)
+    return H / H[2, 2] if abs(H[2, 2]) > 1e-12 * np.abs(H).max() else H / np.linalg.norm(H)
 
 
 def _apply(H, ij):
