@@ -506,14 +506,19 @@ def test_overlapping_balls_on_a_log_display_are_fitted_as_two_or_three():
     # frame 1): a chain of three and a pair overlapping by about half a diameter, on an
     # 8-bit log display that deepens their overlap beyond a sum of spheres. No split
     # fitted them to the noise, so all five were lost; fitted as two or three with σ
-    # for the misfit they leave, each is found
+    # for the misfit they leave, each is found. Measured as `conecal detect` measures
+    # this scan, in the response it finds there (options.response_lambda 0.91), where
+    # the display's floor clips the cores at one level: weighed as measurements, the
+    # clipped cores left ball 1 3.9 px from its marker (σ 0.58) and ball 15 1.6 px
     from benchmarks import carm_images as gen
+    from conecal.detect.gain import linearised
     from conecal.detect.noise import noise_correlation, noise_pixel
 
     sc = gen._setup("ball3d_ii", 1)
 
     def att(k):
-        return (-np.log(np.maximum(gen.render_frame(sc, k)[0].astype(np.float64) / 255.0, 1e-6))).astype(np.float32)
+        a = -np.log(np.maximum(gen.render_frame(sc, k)[0].astype(np.float64) / 255.0, 1e-6))
+        return linearised(a.astype(np.float32), 0.91)
 
     a, mid = att(1), att(6)
     opt = DetectOptions(diameter_px=(6.3, 16.8), pixel_noise=noise_pixel(mid), noise_kappa=noise_correlation(mid))
@@ -523,6 +528,6 @@ def test_overlapping_balls_on_a_log_display_are_fitted_as_two_or_three():
         if c["id"] in (0, 1, 15, 12, 16):
             i = int(np.argmin([np.hypot(b.x - c["x"], b.y - c["y"]) for b in blobs]))
             e = np.hypot(blobs[i].x - c["x"], blobs[i].y - c["y"])
-            assert e < 1.0 and e < 3 * blobs[i].sigma, (c["id"], e, blobs[i])
+            assert e < 0.3 and e < 3 * blobs[i].sigma, (c["id"], e, blobs[i])
             got.add(i)
     assert len(got) == 5

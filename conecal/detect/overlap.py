@@ -108,7 +108,8 @@ def clipped(roi: np.ndarray) -> np.ndarray:
     clipped, were measured as one centre 0.9 px from either at σ 0.03 when
     the core was left out there too)."""
     at = roi >= roi.max()
-    return at if at.sum() >= _CLIPPED_PIXELS else np.zeros(roi.shape, bool)
+    # (a patch mostly at its top level is flat, noiseless or all background: no core)
+    return at if _CLIPPED_PIXELS <= at.sum() < at.size / 2 else np.zeros(roi.shape, bool)
 
 
 def group_box(shape, spheres: np.ndarray, blur: float, pad: float | None = None) -> tuple[int, int, int, int]:
