@@ -345,9 +345,15 @@ def _worse_by(cam, points, xy, c: Candidate, best: Candidate) -> float:
     k = len(best.sph)
     if len(c.sph) <= k:
         return len(c.sph) * (c.rms_px ** 2 - best.rms_px ** 2)
-    pts = c.xy if c.xy is not None else xy
-    mine = np.sort(np.sum((cam.project(points[c.sph] @ c.R.T + c.t) - pts[c.det]) ** 2, axis=1))
+    mine = np.sort(_squared_residuals(cam, points, xy, c))
     return float(mine[:k].sum() - k * best.rms_px ** 2)
+
+
+def _squared_residuals(cam, points, xy, c: Candidate) -> np.ndarray:
+    """Squared residual (px^2) of each sphere candidate ``c`` explains, on
+    the frame's detections ``xy`` (or the candidate's own undistorted ones)."""
+    xy = xy if c.xy is None else c.xy
+    return np.sum((cam.project(points[c.sph] @ c.R.T + c.t) - xy[c.det]) ** 2, axis=1)
 
 
 def _doubts(cam, points, xy, c: Candidate, mine: Candidate, n_mine: int, pooled: float) -> bool:
@@ -397,9 +403,9 @@ def _msac(cam, points, xy, c: Candidate, pooled: float) -> float:
     the pose puts clear on the detector unseen 9 (px; ``pooled``: the
     scan's 2-D RMS; a candidate holding its own undistorted detections is
     scored on those)."""
-    xy = xy if c.xy is None else c.xy
-    r2 = np.sum((cam.project(points[c.sph] @ c.R.T + c.t) - xy[c.det]) ** 2, axis=1) / pooled ** 2
-    return float(np.minimum(r2, _MSAC_CAP).sum() + _MSAC_CAP * (len(xy) - len(c.sph) + c.missing))
+    r2 = _squared_residuals(cam, points, xy, c) / pooled ** 2
+    n_det = len(xy if c.xy is None else c.xy)
+    return float(np.minimum(r2, _MSAC_CAP).sum() + _MSAC_CAP * (n_det - len(c.sph) + c.missing))
 
 
 def _doubted(b: Bundle, usable: list, settled: list, dets: dict, shape, points, gate, pooled, opt):

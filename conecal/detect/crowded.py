@@ -25,7 +25,7 @@ from .background import fit_profile, structured
 from .centre import model_centre
 from .edge import CONE_OFFSET_PX, beside_edge
 from .rod import on_rods, rod_like, run_on
-from .overlap import (components, fit_group, group_box, groups_of, joint_sigma, member_view, neighbours,
+from .overlap import (components, fit_group, group_box, groups_of, joint_sigma, member_views, neighbours,
                       render_box)
 from .size import like_neighbours, nearest_shadows
 from .pairs import elongation_bound, fit_covered, fit_lost, hidden_pairs, is_pair, unsplit_pair
@@ -365,11 +365,11 @@ def measure_crowded(a: np.ndarray, kept: list[Blob], merged: list[Blob], opt: De
         else:
             (c0, q0, c1, q1), sph, sig, _, _, _ = fit
             models = [render_box(fit[0], sph[i:i + 1], opt.blur_px) for i in range(len(g))]
-            work = ag.copy()
+            work, views = ag.copy(), member_views(ag, fit, models)
             for n_i, i in enumerate(g):
                 if only is not None and i != only:
                     continue
-                work[q0:q1, c0:c1] = member_view(ag, fit, models, n_i)
+                work[q0:q1, c0:c1] = views[n_i]
                 writes[i] = _member(work, blobs[i], sph[n_i], sig[n_i], opt, noise, invalid, others, i in new)
         for i, (b, measured) in writes.items():
             if only is None or i == only:

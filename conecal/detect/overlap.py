@@ -204,19 +204,25 @@ def group_model(box, sph: np.ndarray, bg: np.ndarray, blur: float) -> np.ndarray
     return render_box(box, sph, blur) + background_image(box, bg)
 
 
-def member_view(a: np.ndarray, fit, models: list, n: int) -> np.ndarray:
-    """Frame ``a`` over a :func:`fit_group` result's patch as its member
-    ``n`` alone would cast it: less the other members' ``models`` (each
-    member's shadow over the patch). A clipped core (:func:`clipped`) says
-    only "at least", so there member ``n`` sees its own model on the fitted
-    background: less its neighbours' models, the clipped level pulled each
-    centroid of a pair 0.3-2 px towards the other."""
+def member_views(a: np.ndarray, fit, models: list) -> list[np.ndarray]:
+    """Frame ``a`` over a :func:`fit_group` result's patch as each member
+    alone would cast it: less the other members' ``models`` (each member's
+    shadow over the patch). A clipped core (:func:`clipped`) says only "at
+    least", so there a member sees its own model on the fitted background:
+    less its neighbours' models, the clipped level pulled each centroid of a
+    pair 0.3-2 px towards the other."""
     c0, q0, c1, q1 = fit[0]
-    view = a[q0:q1, c0:c1] - (np.sum(models, axis=0) - models[n])
-    cut = clipped(a[q0:q1, c0:c1])
-    if cut.any():
-        view[cut] = (models[n] + background_image(fit[0], fit[3]))[cut]
-    return view
+    patch = a[q0:q1, c0:c1]
+    total = np.sum(models, axis=0)
+    cut = clipped(patch)
+    bg = background_image(fit[0], fit[3])[cut] if cut.any() else None
+    views = []
+    for model in models:
+        view = patch - (total - model)
+        if bg is not None:
+            view[cut] = model[cut] + bg
+        views.append(view)
+    return views
 
 
 def background_image(box, bg: np.ndarray) -> np.ndarray:
