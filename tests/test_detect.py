@@ -240,6 +240,29 @@ def test_the_scan_filter_judges_contrast_and_size_in_each_frame():
     assert [len(r) for r in out] == [6, 7]
 
 
+def test_the_scan_filter_keeps_a_frame_whose_spheres_are_all_flagged():
+    """A spine over a real box phantom flags nearly every sphere (clutter,
+    overlap): with fewer than three unflagged, the frame's contrast is its
+    surely measured blobs' of a declared size (σ under 5 % of the radius),
+    not the scan's (whether three stood unflagged changed with a 1 % change
+    of the measured size, and 9 of 16 markers with it). A lone 4 px blot in
+    a frame of the spine alone is under half a declared sphere's radius."""
+    from conecal.detect import DetectOptions
+    from conecal.detect.frame import Blob
+    from conecal.detect.pipeline import scan_filter
+
+    def blob(mu, r=10.0, sigma=0.05, flags=()):
+        return Blob(0.0, 0.0, r, sigma, mu, 1.0, 1.0, list(flags), 50.0)
+
+    opt = DetectOptions(diameter_px=(12.0, 33.0), shadow_px=(20.7,))
+    bright = [blob(0.15) for _ in range(6)]
+    spine = [blob(0.05, sigma=0.15, flags=("clutter", "overlap")) for _ in range(12)] \
+        + [blob(0.05), blob(0.01, sigma=0.9, flags=("clutter",))]        # one unflagged; a faint blot
+    alone = [blob(0.06, r=3.9, sigma=1.1, flags=("overlap",))]
+    out, _ = scan_filter([bright, bright, spine, alone], opt)
+    assert [len(r) for r in out] == [6, 6, 13, 0]
+
+
 def test_a_small_shadow_ringed_brighter_than_its_background_is_measured():
     """An intensifier's video chain rings each shadow with a band brighter than
     the background (edge enhancement, here 0.012 at 6.5 px round a 0.27-deep,

@@ -27,7 +27,7 @@ from .edge import CONE_OFFSET_PX, beside_edge
 from .rod import on_rods, rod_like, run_on
 from .overlap import (components, fit_group, group_box, groups_of, joint_sigma, member_views, neighbours,
                       render_box)
-from .size import like_neighbours, nearest_shadows
+from .size import like_neighbours, nearest_shadows, size_classes
 from .pairs import elongation_bound, fit_covered, fit_lost, hidden_pairs, is_pair, unsplit_pair
 from .split import peaks_in, split
 
@@ -202,11 +202,18 @@ def measure_crowded(a: np.ndarray, kept: list[Blob], merged: list[Blob], opt: De
     attenuation (flagged clutter, not overlap); a split whose parts are a
     rod's lengths (:func:`conecal.detect.rod.rod_like`) is dropped."""
     R1, mu1 = _typical(kept, opt)
+    # (a phantom of two sphere sizes: a split or joint fit judged against the
+    # frame's typical size alone lost two of its few large spheres touching)
+    classes = size_classes(kept, opt.shadow_px, R1)
     seeds = list(seeds)
     parts, gone, singles, unsplit = [], set(), [], []
     for m in list(merged) + list(deep):
         near = neighbours(m, [*kept, *merged, *deep, *around], peaks, opt, 1.5 * m.radius + 2, 1.2 * R1)
-        found = split(a, m, R1, mu1, opt.blur_px, noise, opt.noise_kappa, near, invalid, peaks)
+        found = None
+        for Rc in classes:
+            found = split(a, m, Rc, mu1, opt.blur_px, noise, opt.noise_kappa, near, invalid, peaks)
+            if found is not None:
+                break
         if found is None:
             is_deep = any(m is d for d in deep)
             # two shadows nearly on top of each other that no split separates
@@ -338,7 +345,8 @@ def measure_crowded(a: np.ndarray, kept: list[Blob], merged: list[Blob], opt: De
                 break
             fit = refit(fit[1], [n for n in range(len(g)) if n != drop])
             g = dropped(g, [drop])
-        while fit is not None and not np.all(sized := (fit[1][:, 2] > 0.5 * R1) & (fit[1][:, 2] < 2.0 * R1)):
+        while fit is not None and not np.all(sized := np.any((fit[1][:, 2, None] > 0.5 * classes)
+                                                             & (fit[1][:, 2, None] < 2.0 * classes), axis=1)):
             # a member swelled or shrank beyond any sphere of the frame: the joint model
             # followed something else (a wall). A seed that did is no sphere (dropped, the
             # rest fitted again); any other, and none of the centres is trusted: the

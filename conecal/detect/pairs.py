@@ -24,7 +24,7 @@ from .frame import moment_trace
 from .overlap import disc_misfit, fit_group, group_box, joint_sigma, neighbours
 from .ring import ring_mask
 from .rod import line_of, run_on
-from .size import nearest_shadows, size_ratio
+from .size import declared_radii, nearest_shadows, size_ratio
 from .split import ADEQUATE
 
 # a lone sphere's anisotropy is 1.03 median, 1.10 at the 95th percentile (an
@@ -88,6 +88,22 @@ _PRESSED = 0.9
 # has this many shadows measured alone to say what its spheres are
 _LOST_SPHERES = 1.4
 _LOST_PEERS = 5
+# a marker measured alone, elongated beyond a lone sphere (``_PAIR_ANISOTROPY``) and
+# holding this many times the attenuation of its size class's nearest lone
+# shadows may be two spheres 0.2-0.4 of a diameter apart, which no density or
+# pair test sees: it is fitted as two (on the independent renderer's helix such
+# markers read 1.19 and 1.3-1.4x and were 0.4-1.9 px off at σ 0.05-0.09; lone
+# beads as elongated read 1.2x, and the fit as two refuses them)
+_SUSPECT_ATTENUATION = 1.25
+# ... or, with no lone shadow of its size class, this many times
+# the frame's contrast per px of chord (the helix's pair of large beads 1.31)
+_SUSPECT_DENSITY = 1.15
+# a size class: the lone shadows from a marker's radius over _CLASS_BELOW (two
+# spheres half a diameter apart read 1.25x one's radius) to _CLASS times it; a
+# declared diameter within _DECLARED_CLASS of it
+_CLASS = 1.25
+_CLASS_BELOW = 1.4
+_DECLARED_CLASS = 1.6
 
 
 def fit_covered(a, out: list, opt, noise: float, invalid, peaks, R1: float, mu1) -> list:
@@ -99,7 +115,10 @@ def fit_covered(a, out: list, opt, noise: float, invalid, peaks, R1: float, mu1)
     is tried once more, beside its sibling. ``R1``, ``mu1``: the frame's
     sphere radius (px) and contrast."""
     res = list(out)
-    todo = [(b, True) for b in out if b.pair or ("overlap" in b.flags and b.sigma > _COVERED * b.radius)]
+    lone = [b for b in out if not b.flags]
+    declared = declared_radii(out, opt.shadow_px)
+    todo = [(b, True) for b in out
+            if b.pair or ("overlap" in b.flags and b.sigma > _COVERED * b.radius) or _suspect(b, lone, mu1)]
     while todo:
         b, again = todo.pop(0)
         if not any(b is o for o in res):
@@ -107,12 +126,57 @@ def fit_covered(a, out: list, opt, noise: float, invalid, peaks, R1: float, mu1)
         pressed = [o for o in res if o is not b and np.hypot(o.x - b.x, o.y - b.y) < _PRESSED * (o.radius + b.radius)]
         mask = [n for n in neighbours(b, res, peaks, opt)
                 if all(np.hypot(n[0] - o.x, n[1] - o.y) > 0.5 * o.radius for o in pressed)]
-        parts = on_top(a, b, R1, mu1, opt.blur_px, noise, opt.noise_kappa, mask, invalid, pressed)
+        parts = on_top(a, b, (R1, _class_radius(b, lone, R1, declared)), mu1, opt.blur_px, noise, opt.noise_kappa,
+                       mask, invalid, pressed)
         rest = [o for o in res if o is not b and all(o is not q for q in pressed)]
         if parts and _clear(parts, rest, 0.5):
             res = rest + parts
             todo += [(p, False) for p in parts if p.pair and again]
     return res
+
+
+def _size_class(b, lone: list) -> list:
+    """The lone shadows ``lone`` of blob ``b``'s size class (radius from its
+    own over ``_CLASS_BELOW`` to ``_CLASS`` times it): a phantom of two
+    sphere sizes has two."""
+    return [o for o in lone if o is not b and b.radius / _CLASS_BELOW <= o.radius <= b.radius * _CLASS]
+
+
+def _class_radius(b, lone: list, R1: float, declared: np.ndarray) -> float:
+    """The radius (px) of one sphere of blob ``b``'s size class: the median of
+    three or more lone shadows of it, else the declared radius nearest its
+    own (``declared``, px) when within ``_DECLARED_CLASS`` of it, else its
+    own (a pair nearly on top reads 1.0-1.15x its larger sphere's). A
+    helix's large beads stand alone two or three to a frame: the parts of a
+    pair of them (5.8 and 6.7 px) were refused against the small ones' 3.3
+    (the frame's ``R1``, kept where ``b`` has no radius)."""
+    same = _size_class(b, lone)
+    if len(same) >= 3:
+        return float(np.median([o.radius for o in same]))
+    if declared.size:
+        near = float(declared[np.argmin(np.abs(np.log(declared / b.radius)))])
+        if abs(np.log(near / b.radius)) <= np.log(_DECLARED_CLASS):
+            return near
+    return float(b.radius) if np.isfinite(b.radius) and b.radius > 0 else R1
+
+
+def _suspect(b, lone: list, mu1) -> bool:
+    """Whether marker ``b``, measured alone (not flagged overlap; flagged
+    clutter or not), may be two spheres 0.2-0.4 of a diameter apart:
+    elongated beyond a lone sphere and holding ``_SUSPECT_ATTENUATION`` of
+    one sphere's attenuation of its size class (the median of its class's
+    four nearest lone shadows, one or more: an intensifier magnifies its
+    periphery, and a helix's large beads stand alone two to a frame), or,
+    with none, ``_SUSPECT_DENSITY`` of the frame's contrast ``mu1`` (per px
+    of chord)."""
+    if "overlap" in b.flags or mu1 is None or not np.isfinite(b.anisotropy) or not np.isfinite(b.sigma) \
+            or b.anisotropy <= _PAIR_ANISOTROPY:
+        return False
+    same = _size_class(b, lone)
+    if not same:
+        return b.mu_px >= _SUSPECT_DENSITY * mu1
+    near = nearest_shadows(b.x, b.y, same)
+    return b.mu_px * b.radius**3 >= _SUSPECT_ATTENUATION * float(np.median([o.mu_px * o.radius**3 for o in near]))
 
 
 def fit_lost(a, lost: list, out: list, opt, noise: float, invalid, peaks, R1: float, mu1, peers: int) -> list:
@@ -121,18 +185,22 @@ def fit_lost(a, lost: list, out: list, opt, noise: float, invalid, peaks, R1: fl
     frame's spheres' attenuation: the two or three spheres
     :func:`on_top` fits where no sum fits to the noise (``lenient``),
     with σ for the misfit that sum leaves, where no part falls on a marker
-    of ``out``. ``R1``, ``mu1``: the frame's sphere radius (px) and contrast,
-    measured on ``peers`` shadows alone: none unless ``_LOST_PEERS`` or more
-    (a real C-arm frame without the phantom took them from one blot, and a
+    of ``out``; each part has the frame's size or the blob's size class's
+    (:func:`_class_radius`: two of a helix's large beads 0.65 of a diameter
+    apart were lost against its small ones'). ``R1``, ``mu1``: the frame's
+    sphere radius (px) and contrast, measured on ``peers`` shadows alone:
+    none unless ``_LOST_PEERS`` or more (a real C-arm frame without the phantom took them from one blot, and a
     small elongated blot on the spine was two such spheres)."""
     new: list = []
     if peers < _LOST_PEERS or mu1 is None:
         return new
+    lone = [b for b in out if not b.flags]
+    declared = declared_radii(out, opt.shadow_px)
     for b in lost:
         if b.mu_px * b.radius**3 < _LOST_SPHERES * mu1 * R1**3:
             continue
-        parts = on_top(a, b, R1, mu1, opt.blur_px, noise, opt.noise_kappa, neighbours(b, out + new + lost, peaks, opt),
-                       invalid, lenient=True)
+        parts = on_top(a, b, (R1, _class_radius(b, lone, R1, declared)), mu1, opt.blur_px, noise, opt.noise_kappa,
+                       neighbours(b, out + new + lost, peaks, opt), invalid, lenient=True)
         if parts and _clear(parts, out + new, 0.8):
             new += parts
     return new
@@ -302,7 +370,7 @@ def _heavy(blobs: list, level: np.ndarray, ok: np.ndarray, shadow_px, depth_rati
     return heavy
 
 
-def on_top(a: np.ndarray, m, R1: float, mu1, blur: float, noise: float, kappa: float, mask_out, invalid,
+def on_top(a: np.ndarray, m, R1, mu1, blur: float, noise: float, kappa: float, mask_out, invalid,
            pressed=(), lenient: bool = False):
     """Blob ``m``, whose σ covers a second sphere nearly on top (``m.pair``) or
     beside it (an elongation beyond any sphere's), as two spheres, else three:
@@ -316,8 +384,10 @@ def on_top(a: np.ndarray, m, R1: float, mu1, blur: float, noise: float, kappa: f
     than ``m`` fitted as one sphere, and no more than ``ADEQUATE`` or than
     around them, with chi-square ``_TWO_GAIN`` times one's or less (not
     asked with markers pressed against it: the patch around them all holds
-    more background); each has the frame's size (0.6-1.6 ``R1``), lies
-    ``_TWO_APART`` R1 or more from the others and holds the frame's contrast
+    more background); each has a size of the frame's spheres (0.6-1.6 of
+    ``R1``, px, or of one of them when several: the frame's and the blob's
+    size class, :func:`_class_radius`), lies ``_TWO_APART`` of the smallest
+    or more from the others and holds the frame's contrast
     (0.6-1.6 ``mu1``) or, one at most, two spheres' (1.6-2.6: one more
     hidden in it, flagged a pair, σ at least ``_HIDDEN_OFFSET`` of its
     radius). A lone sphere on a curved background gives parts on top of each
@@ -363,7 +433,7 @@ def on_top(a: np.ndarray, m, R1: float, mu1, blur: float, noise: float, kappa: f
     return None if found is None else found[0]
 
 
-def _on_top_parts(a, was: list, fit, chi2_one, on_one: float, R1: float, mu1: float, blur, noise, kappa, mask_out,
+def _on_top_parts(a, was: list, fit, chi2_one, on_one: float, R1, mu1: float, blur, noise, kappa, mask_out,
                   invalid, lenient: bool = False):
     """:func:`on_top`'s parts from joint ``fit`` (each part from the
     marker ``was`` it stands for) and their misfit on the discs, or None
@@ -375,9 +445,10 @@ def _on_top_parts(a, was: list, fit, chi2_one, on_one: float, R1: float, mu1: fl
     _, sph, sig, _, chi2, _ = fit
     dense = sph[:, 3] / mu1
     gaps = np.hypot(sph[:, None, 0] - sph[None, :, 0], sph[:, None, 1] - sph[None, :, 1])
-    if (np.any((sph[:, 2] < 0.6 * R1) | (sph[:, 2] > 1.6 * R1))
+    sizes = np.atleast_1d(np.asarray(R1, float))
+    if (np.any(np.all((sph[:, 2, None] < 0.6 * sizes) | (sph[:, 2, None] > 1.6 * sizes), axis=1))
             or np.any((dense < (_LENIENT_CONTRAST if lenient else 0.6)) | (dense > 2.6))
-            or np.sum(dense > 1.6) > 1 or np.min(gaps + np.eye(len(sph)) * 1e9) < _TWO_APART * R1
+            or np.sum(dense > 1.6) > 1 or np.min(gaps + np.eye(len(sph)) * 1e9) < _TWO_APART * sizes.min()
             or (chi2_one is not None and chi2 > _TWO_GAIN * chi2_one)):
         return None
     on, off = disc_misfit(a, fit, blur, noise, mask_out, invalid)

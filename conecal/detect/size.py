@@ -86,3 +86,36 @@ def like_neighbours(R: float, mu: float, near: list, sized: bool = True) -> bool
     R0 = float(np.median([b.radius for b in near]))
     ratio = mu * R**3 / float(np.median([b.mu_px * b.radius**3 for b in near]))
     return (not sized or 0.8 * R0 <= R <= 1.25 * R0) and 0.6 <= ratio < 1.4
+
+
+def declared_radii(blobs: list, shadow_px) -> np.ndarray:
+    """The declared spheres' shadow radii (px) at the frame's measured scale
+    (:func:`size_ratio` over ``blobs``' diameters), from their nominal
+    diameters ``shadow_px`` (px); empty when none are declared."""
+    d = np.asarray(shadow_px, float)
+    if not d.size:
+        return d
+    return (size_ratio([2 * b.radius for b in blobs], d) or 1.0) * d / 2
+
+
+# a size class apart from the frame's typical sphere: radius this far off it
+_OTHER_CLASS = 1.4
+
+
+def size_classes(blobs: list, shadow_px, R1: float) -> np.ndarray:
+    """The frame's sphere radii (px): its typical ``R1``, then each declared
+    size (:func:`declared_radii`) and the median of its lone shadows (``blobs``
+    unflagged) beyond ``_OTHER_CLASS`` of ``R1`` either way. A helix of 0.9
+    and 1.2 mm beads shows mostly small ones: two large ones touching were
+    judged against the small ones' radius, swelled beyond it and lost."""
+    out = [R1]
+    lone = np.array([b.radius for b in blobs if not b.flags])
+    for side in (lone[lone > _OTHER_CLASS * R1], lone[lone < R1 / _OTHER_CLASS]):
+        if side.size:
+            out.append(float(np.median(side)))
+    out += [float(r) for r in declared_radii(blobs, shadow_px)]
+    keep = [out[0]]
+    for r in out[1:]:
+        if all(abs(np.log(r / k)) > np.log(_OTHER_CLASS) for k in keep):
+            keep.append(r)
+    return np.array(keep)
