@@ -152,7 +152,7 @@ def main(argv=None) -> int:
     wrong = []
     print("frame status      n  RMS px  pinhole  grid-homography RMS")
     for f in frames:
-        line = f"{f['frame']:5d} {f['status'][:10]:10s}"
+        line = f"{f['frame']:5d} {f['status']:10s}"  # (a rejected frame's whole reason)
         if f["status"] == "ok":
             ids, xy = pairs(poses, markers, f)
             g = grid_rms(ids, xy)
