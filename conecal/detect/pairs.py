@@ -189,8 +189,9 @@ def fit_lost(a, lost: list, out: list, opt, noise: float, invalid, peaks, R1: fl
     (:func:`_class_radius`: two of a helix's large beads 0.65 of a diameter
     apart were lost against its small ones'). ``R1``, ``mu1``: the frame's
     sphere radius (px) and contrast, measured on ``peers`` shadows alone:
-    none unless ``_LOST_PEERS`` or more (a real C-arm frame without the phantom took them from one blot, and a
-    small elongated blot on the spine was two such spheres)."""
+    none unless ``_LOST_PEERS`` or more (a real C-arm frame without the
+    phantom took them from one blot, and a small elongated blot on the spine
+    was two such spheres)."""
     new: list = []
     if peers < _LOST_PEERS or mu1 is None:
         return new
@@ -388,12 +389,13 @@ def on_top(a: np.ndarray, m, R1, mu1, blur: float, noise: float, kappa: float, m
     ``R1``, px, or of one of them when several: the frame's and the blob's
     size class, :func:`_class_radius`), lies ``_TWO_APART`` of the smallest
     or more from the others and holds the frame's contrast
-    (0.6-1.6 ``mu1``) or, one at most, two spheres' (1.6-2.6: one more
-    hidden in it, flagged a pair, σ at least ``_HIDDEN_OFFSET`` of its
-    radius). A lone sphere on a curved background gives parts on top of each
-    other, or one of a few percent of its contrast soaking up the
-    background: both refused. ``lenient``: for a blob nothing else measured,
-    where no sum of spheres may fit (an 8-bit log display deepens overlaps):
+    (0.6-1.6 ``mu1``) or, one at most, two spheres' (1.6-2.6); a part
+    denser than ``_HIDDEN_DENSITY`` may hold one more hidden in it: flagged
+    a pair, σ at least ``_HIDDEN_OFFSET`` of its radius. A lone sphere on a
+    curved background gives parts on top of each other, or one of a few
+    percent of its contrast soaking up the background: both refused.
+    ``lenient``: for a blob nothing else measured, where no sum of spheres
+    may fit (an 8-bit log display deepens overlaps):
     the parts need not fit to the noise, but each holds ``_LENIENT_CONTRAST``
     of the frame's contrast, three replace two only with ``_THIRD`` times less
     misfit, and σ grows with the square root of the misfit on the discs over
