@@ -33,15 +33,18 @@ from conecal.detect.noise import noise_pixel  # noqa: E402
 SHAPE = (256, 320)
 
 
-def frame(sph, rng, ss: int = 5, blur: float = 1.0, noise: float = 0.004) -> np.ndarray:
-    """Attenuation image of spheres ``sph`` (x, y, R px, mu per px of chord)."""
-    yy, xx = np.mgrid[0:SHAPE[0] * ss, 0:SHAPE[1] * ss]
+def frame(sph, rng, shape=SHAPE, ss: int = 5, blur: float = 1.0, noise: float = 0.004) -> np.ndarray:
+    """Attenuation image (``shape`` px) of spheres ``sph`` (x, y, R px, mu per
+    px of chord): each chord 2 mu sqrt(R^2 - r^2) sampled ``ss`` x ``ss`` per
+    pixel, a Gaussian blur of ``blur`` px, a flat background of 0.35, white
+    noise of std ``noise``."""
+    yy, xx = np.mgrid[0:shape[0] * ss, 0:shape[1] * ss]
     xx, yy = (xx + 0.5) / ss - 0.5, (yy + 0.5) / ss - 0.5
     fine = np.zeros(xx.shape)
     for x, y, R, mu in sph:
         fine += 2 * mu * np.sqrt(np.clip(R**2 - (xx - x) ** 2 - (yy - y) ** 2, 0, None))
-    a = gaussian_filter(fine.reshape(SHAPE[0], ss, SHAPE[1], ss).mean(axis=(1, 3)), blur)
-    return (0.35 + a + rng.normal(0, noise, SHAPE)).astype(np.float32)
+    a = gaussian_filter(fine.reshape(shape[0], ss, shape[1], ss).mean(axis=(1, 3)), blur)
+    return (0.35 + a + rng.normal(0, noise, shape)).astype(np.float32)
 
 
 def scene(seed: int, sep: float):

@@ -124,20 +124,6 @@ def test_the_depth_ratio_follows_the_measured_shadow_size():
     assert DetectOptions(diameter_px=(6, 16)).depth_ratio == 0.0
 
 
-def _independent_frame(sph, rng, shape=SHAPE, blur=1.0, ss=5):
-    """Attenuation of spheres ``sph`` (x, y, R, mu: px, per px of chord) drawn
-    here, not by conecal's model: each chord 2 mu sqrt(R^2 - r^2) sampled
-    ss x ss per pixel, a Gaussian blur, a flat background and white noise."""
-    from scipy.ndimage import gaussian_filter
-    yy, xx = np.mgrid[0:shape[0] * ss, 0:shape[1] * ss]
-    xx, yy = (xx + 0.5) / ss - 0.5, (yy + 0.5) / ss - 0.5
-    fine = np.zeros(xx.shape)
-    for x, y, R, mu in sph:
-        fine += 2 * mu * np.sqrt(np.clip(R**2 - (xx - x) ** 2 - (yy - y) ** 2, 0, None))
-    a = gaussian_filter(fine.reshape(shape[0], ss, shape[1], ss).mean(axis=(1, 3)), blur)
-    return (0.35 + a + rng.normal(0, 0.004, shape)).astype(np.float32)
-
-
 def test_large_spheres_overlapping_among_small_ones_are_each_measured():
     """A helix of two bead sizes (an independent renderer's intensifier scan,
     declared with one size): most shadows in a frame are small beads', two or
@@ -148,6 +134,8 @@ def test_large_spheres_overlapping_among_small_ones_are_each_measured():
     lost: their parts and joint fits were judged against the small beads'
     radius. Now each is measured within 3 σ, flagged overlap, whether the
     phantom declares one size or both; lone beads stay unflagged."""
+    from benchmarks.bench_two_sizes import frame
+
     rng = np.random.default_rng(7)
     small = [[x + rng.uniform(-1, 1), y + rng.uniform(-1, 1), 3.3, 0.06] for x in (30, 90, 150, 210, 270)
              for y in (30, 225)]
@@ -159,7 +147,7 @@ def test_large_spheres_overlapping_among_small_ones_are_each_measured():
         c = np.array([x, 150.0]) + rng.uniform(-1, 1, 2)
         pairs.append(np.array([c - d, c + d]))
         sph += [[*(c - d), 6.7, 0.06], [*(c + d), 5.9, 0.06]]
-    a = _independent_frame(sph, rng)
+    a = frame(sph, rng)      # drawn with the bench's own forms, not conecal's model
     for declared in ((6.6,), (6.6, 13.4)):
         blobs = detect_frame(a, DetectOptions(diameter_px=(5, 16), pixel_noise=noise_pixel(a), shadow_px=declared))
         for pts in pairs:

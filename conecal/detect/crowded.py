@@ -27,7 +27,7 @@ from .edge import CONE_OFFSET_PX, beside_edge
 from .rod import on_rods, rod_like, run_on
 from .overlap import (components, fit_group, group_box, groups_of, joint_sigma, member_views, neighbours,
                       render_box)
-from .size import like_neighbours, nearest_shadows, size_classes
+from .size import like_neighbours, nearest_shadows, size_classes, typical_sphere
 from .pairs import elongation_bound, fit_covered, fit_lost, hidden_pairs, is_pair, unsplit_pair
 from .split import peaks_in, split
 
@@ -70,7 +70,7 @@ def detect_frame(a: np.ndarray, opt: DetectOptions) -> list[Blob]:
     two = [b for b in spoilt if len(peaks_in(b, peaks)) >= 2]
     merged = merged + two
     spoilt = [b for b in spoilt if b not in two]
-    R1, mu1 = _typical(kept, opt)
+    R1, mu1 = typical_sphere(kept, opt)
     # a round-enough blob holding the attenuation of 1.4+ of the frame's spheres,
     # a little elongated or too dense, may be two shadows almost on top of each other
     # (a spoilt one too: its neighbour is what spoilt it)
@@ -122,16 +122,6 @@ def detect_frame(a: np.ndarray, opt: DetectOptions) -> list[Blob]:
     out = fit_covered(a, out, opt, noise, invalid, peaks, R1, mu1)
     # a shadow that stands apart: its centre from its fitted model, 2-3x surer than its centroid (.centre)
     return [model_centre(a, b, opt, noise, invalid, neighbours(b, out, peaks, opt), (R1, mu1)) for b in out]
-
-
-def _typical(kept: list[Blob], opt: DetectOptions):
-    """The frame's sphere radius (px) and contrast (attenuation per px of
-    chord, None when no sphere stands alone): from its separate shadows, else
-    the nominal size the options were made from."""
-    ref = [b for b in kept if not b.flags] or kept
-    if ref:
-        return float(np.median([b.radius for b in ref])), float(np.median([b.mu_px for b in ref]))
-    return float(np.sqrt(opt.diameter_px[0] * opt.diameter_px[1] / 0.96)) / 2, None
 
 
 def _crowd_seeds(peaks, kept: list[Blob], R1: float, opt: DetectOptions, strong=None) -> list:
@@ -201,7 +191,7 @@ def measure_crowded(a: np.ndarray, kept: list[Blob], merged: list[Blob], opt: De
     other shadow is fitted by itself and kept only with one sphere's
     attenuation (flagged clutter, not overlap); a split whose parts are a
     rod's lengths (:func:`conecal.detect.rod.rod_like`) is dropped."""
-    R1, mu1 = _typical(kept, opt)
+    R1, mu1 = typical_sphere(kept, opt)
     # (a phantom of two sphere sizes: a split or joint fit judged against the
     # frame's typical size alone lost two of its few large spheres touching)
     classes = size_classes(kept, opt.shadow_px, R1)

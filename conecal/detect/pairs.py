@@ -24,7 +24,7 @@ from .frame import moment_trace
 from .overlap import disc_misfit, fit_group, group_box, joint_sigma, neighbours
 from .ring import ring_mask
 from .rod import line_of, run_on
-from .size import declared_radii, nearest_shadows, size_ratio
+from .size import class_radius, declared_radii, nearest_shadows, size_class, size_ratio
 from .split import ADEQUATE
 
 # a lone sphere's anisotropy is 1.03 median, 1.10 at the 95th percentile (an
@@ -98,12 +98,6 @@ _SUSPECT_ATTENUATION = 1.25
 # ... or, with no lone shadow of its size class, this many times
 # the frame's contrast per px of chord (the helix's pair of large beads 1.31)
 _SUSPECT_DENSITY = 1.15
-# a size class: the lone shadows from a marker's radius over _CLASS_BELOW (two
-# spheres half a diameter apart read 1.25x one's radius) to _CLASS times it; a
-# declared diameter within _DECLARED_CLASS of it
-_CLASS = 1.25
-_CLASS_BELOW = 1.4
-_DECLARED_CLASS = 1.6
 
 
 def fit_covered(a, out: list, opt, noise: float, invalid, peaks, R1: float, mu1) -> list:
@@ -126,38 +120,13 @@ def fit_covered(a, out: list, opt, noise: float, invalid, peaks, R1: float, mu1)
         pressed = [o for o in res if o is not b and np.hypot(o.x - b.x, o.y - b.y) < _PRESSED * (o.radius + b.radius)]
         mask = [n for n in neighbours(b, res, peaks, opt)
                 if all(np.hypot(n[0] - o.x, n[1] - o.y) > 0.5 * o.radius for o in pressed)]
-        parts = on_top(a, b, (R1, _class_radius(b, lone, R1, declared)), mu1, opt.blur_px, noise, opt.noise_kappa,
+        parts = on_top(a, b, (R1, class_radius(b, lone, R1, declared)), mu1, opt.blur_px, noise, opt.noise_kappa,
                        mask, invalid, pressed)
         rest = [o for o in res if o is not b and all(o is not q for q in pressed)]
         if parts and _clear(parts, rest, 0.5):
             res = rest + parts
             todo += [(p, False) for p in parts if p.pair and again]
     return res
-
-
-def _size_class(b, lone: list) -> list:
-    """The lone shadows ``lone`` of blob ``b``'s size class (radius from its
-    own over ``_CLASS_BELOW`` to ``_CLASS`` times it): a phantom of two
-    sphere sizes has two."""
-    return [o for o in lone if o is not b and b.radius / _CLASS_BELOW <= o.radius <= b.radius * _CLASS]
-
-
-def _class_radius(b, lone: list, R1: float, declared: np.ndarray) -> float:
-    """The radius (px) of one sphere of blob ``b``'s size class: the median of
-    three or more lone shadows of it, else the declared radius nearest its
-    own (``declared``, px) when within ``_DECLARED_CLASS`` of it, else its
-    own (a pair nearly on top reads 1.0-1.15x its larger sphere's). A
-    helix's large beads stand alone two or three to a frame: the parts of a
-    pair of them (5.8 and 6.7 px) were refused against the small ones' 3.3
-    (the frame's ``R1``, kept where ``b`` has no radius)."""
-    same = _size_class(b, lone)
-    if len(same) >= 3:
-        return float(np.median([o.radius for o in same]))
-    if declared.size:
-        near = float(declared[np.argmin(np.abs(np.log(declared / b.radius)))])
-        if abs(np.log(near / b.radius)) <= np.log(_DECLARED_CLASS):
-            return near
-    return float(b.radius) if np.isfinite(b.radius) and b.radius > 0 else R1
 
 
 def _suspect(b, lone: list, mu1) -> bool:
@@ -172,7 +141,7 @@ def _suspect(b, lone: list, mu1) -> bool:
     if "overlap" in b.flags or mu1 is None or not np.isfinite(b.anisotropy) or not np.isfinite(b.sigma) \
             or b.anisotropy <= _PAIR_ANISOTROPY:
         return False
-    same = _size_class(b, lone)
+    same = size_class(b, lone)
     if not same:
         return b.mu_px >= _SUSPECT_DENSITY * mu1
     near = nearest_shadows(b.x, b.y, same)
@@ -186,7 +155,7 @@ def fit_lost(a, lost: list, out: list, opt, noise: float, invalid, peaks, R1: fl
     :func:`on_top` fits where no sum fits to the noise (``lenient``),
     with σ for the misfit that sum leaves, where no part falls on a marker
     of ``out``; each part has the frame's size or the blob's size class's
-    (:func:`_class_radius`: two of a helix's large beads 0.65 of a diameter
+    (:func:`.size.class_radius`: two of a helix's large beads 0.65 of a diameter
     apart were lost against its small ones'). ``R1``, ``mu1``: the frame's
     sphere radius (px) and contrast, measured on ``peers`` shadows alone:
     none unless ``_LOST_PEERS`` or more (a real C-arm frame without the
@@ -200,7 +169,7 @@ def fit_lost(a, lost: list, out: list, opt, noise: float, invalid, peaks, R1: fl
     for b in lost:
         if b.mu_px * b.radius**3 < _LOST_SPHERES * mu1 * R1**3:
             continue
-        parts = on_top(a, b, (R1, _class_radius(b, lone, R1, declared)), mu1, opt.blur_px, noise, opt.noise_kappa,
+        parts = on_top(a, b, (R1, class_radius(b, lone, R1, declared)), mu1, opt.blur_px, noise, opt.noise_kappa,
                        neighbours(b, out + new + lost, peaks, opt), invalid, lenient=True)
         if parts and _clear(parts, out + new, 0.8):
             new += parts
@@ -387,7 +356,7 @@ def on_top(a: np.ndarray, m, R1, mu1, blur: float, noise: float, kappa: float, m
     asked with markers pressed against it: the patch around them all holds
     more background); each has a size of the frame's spheres (0.6-1.6 of
     ``R1``, px, or of one of them when several: the frame's and the blob's
-    size class, :func:`_class_radius`), lies ``_TWO_APART`` of the smallest
+    size class, :func:`.size.class_radius`), lies ``_TWO_APART`` of the smallest
     or more from the others and holds the frame's contrast
     (0.6-1.6 ``mu1``) or, one at most, two spheres' (1.6-2.6); a part
     denser than ``_HIDDEN_DENSITY`` may hold one more hidden in it: flagged

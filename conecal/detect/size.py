@@ -7,7 +7,9 @@ candidates, the background rings and the crowd tests, so the same images gave
 other markers. Here the shadows of one frame measured with the typed size say
 how far off it is, and the sizes looked for follow what was measured.
 Within a frame, a shadow claimed as one sphere is judged against its
-nearest neighbours measured alone (:func:`like_neighbours`).
+nearest neighbours measured alone (:func:`like_neighbours`), and a phantom
+of two sphere sizes has a size class for each (:func:`size_classes`,
+:func:`size_class`, :func:`class_radius`).
 """
 
 from __future__ import annotations
@@ -119,3 +121,46 @@ def size_classes(blobs: list, shadow_px, R1: float) -> np.ndarray:
         if all(abs(np.log(r / k)) > np.log(_OTHER_CLASS) for k in keep):
             keep.append(r)
     return np.array(keep)
+
+
+# a size class: the lone shadows from a marker's radius over _CLASS_BELOW (two
+# spheres half a diameter apart read 1.25x one's radius) to _CLASS times it; a
+# declared diameter within _DECLARED_CLASS of it
+_CLASS = 1.25
+_CLASS_BELOW = 1.4
+_DECLARED_CLASS = 1.6
+
+
+def size_class(b, lone: list) -> list:
+    """The lone shadows ``lone`` of blob ``b``'s size class (radius from its
+    own over ``_CLASS_BELOW`` to ``_CLASS`` times it): a phantom of two
+    sphere sizes has two."""
+    return [o for o in lone if o is not b and b.radius / _CLASS_BELOW <= o.radius <= b.radius * _CLASS]
+
+
+def class_radius(b, lone: list, R1: float, declared: np.ndarray) -> float:
+    """The radius (px) of one sphere of blob ``b``'s size class: the median of
+    three or more lone shadows of it, else the declared radius nearest its
+    own (``declared``, px) when within ``_DECLARED_CLASS`` of it, else its
+    own (a pair nearly on top reads 1.0-1.15x its larger sphere's). A
+    helix's large beads stand alone two or three to a frame: the parts of a
+    pair of them (5.8 and 6.7 px) were refused against the small ones' 3.3
+    (the frame's ``R1``, kept where ``b`` has no radius)."""
+    same = size_class(b, lone)
+    if len(same) >= 3:
+        return float(np.median([o.radius for o in same]))
+    if declared.size:
+        near = float(declared[np.argmin(np.abs(np.log(declared / b.radius)))])
+        if abs(np.log(near / b.radius)) <= np.log(_DECLARED_CLASS):
+            return near
+    return float(b.radius) if np.isfinite(b.radius) and b.radius > 0 else R1
+
+
+def typical_sphere(kept: list, opt: DetectOptions):
+    """The frame's sphere radius (px) and contrast (attenuation per px of
+    chord, None when no sphere stands alone): from its separate shadows, else
+    the nominal size the options were made from."""
+    ref = [b for b in kept if not b.flags] or kept
+    if ref:
+        return float(np.median([b.radius for b in ref])), float(np.median([b.mu_px for b in ref]))
+    return float(np.sqrt(opt.diameter_px[0] * opt.diameter_px[1] / 0.96)) / 2, None
