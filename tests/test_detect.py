@@ -224,7 +224,7 @@ def test_the_scan_filter_judges_contrast_and_size_in_each_frame():
     ghost at 5 % of its own frame's markers and a 3 px speck among 10 px
     spheres: removed; a declared 1:3 size range keeps a small sphere."""
     from conecal.detect import DetectOptions
-    from conecal.detect.frame import Blob
+    from conecal.detect.options import Blob
     from conecal.detect.pipeline import scan_filter
 
     def blob(mu, r=10.0, flags=()):
@@ -248,7 +248,7 @@ def test_the_scan_filter_keeps_a_frame_whose_spheres_are_all_flagged():
     of the measured size, and 9 of 16 markers with it). A lone 4 px blot in
     a frame of the spine alone is under half a declared sphere's radius."""
     from conecal.detect import DetectOptions
-    from conecal.detect.frame import Blob
+    from conecal.detect.options import Blob
     from conecal.detect.pipeline import scan_filter
 
     def blob(mu, r=10.0, sigma=0.05, flags=()):
@@ -271,7 +271,8 @@ def test_a_small_shadow_ringed_brighter_than_its_background_is_measured():
     half-maximum size holds, and its centre is unbiased."""
     import cv2
 
-    from conecal.detect.frame import DetectOptions, refine
+    from conecal.detect.frame import refine
+    from conecal.detect.options import DetectOptions
 
     n, R, (cx, cy) = 48, 3.1, (23.4, 24.7)
     yy, xx = np.mgrid[0:n, 0:n].astype(float)

@@ -8,7 +8,7 @@ import numpy as np
 import conecal.detect.centre as centre
 from conecal.detect import DetectOptions, detect_frame
 from conecal.detect.background import smooth_under
-from conecal.detect.frame import Blob
+from conecal.detect.options import Blob
 from conecal.detect.noise import noise_correlation, noise_pixel
 
 

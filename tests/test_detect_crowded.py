@@ -330,7 +330,7 @@ def test_weak_peaks_chain_into_seeds_only_through_shadows_or_strong_peaks():
     a shadow measured alone, or of a peak linked to one; a link between two
     weak peaks carries nothing (a spine's edges raised a 34-member group)."""
     from conecal.detect.crowded import _crowd_seeds
-    from conecal.detect.frame import Blob
+    from conecal.detect.options import Blob
 
     opt = DetectOptions(diameter_px=(7.2, 19.2), blur_px=1.0)
     kept = [Blob(0.0, 0.0, 5.0, 0.05, 0.05, 1.0, 1.0, [], 50.0)]
@@ -368,7 +368,7 @@ def test_a_round_merged_blob_of_the_neighbours_material_is_one_larger_sphere():
     chord, it is one (larger) sphere; twice that (two spheres on one line of
     sight) or elongated, it is not."""
     from conecal.detect.crowded import _one_sphere
-    from conecal.detect.frame import Blob
+    from conecal.detect.options import Blob
 
     lone = [Blob(100.0 * k, 0.0, 9.5, 0.01, 0.11, 2.0, 1.02, [], 300.0, 0.1) for k in range(4)]
 
@@ -381,7 +381,7 @@ def test_a_round_merged_blob_of_the_neighbours_material_is_one_larger_sphere():
 
 
 def test_a_chain_is_started_evenly_along_its_long_axis():
-    from conecal.detect.frame import Blob
+    from conecal.detect.options import Blob
     from conecal.detect.split import _axis_chain
     for sph in (np.array([[30.0, 27.0, 5.0, 0.05], [36.0, 31.0, 5.0, 0.05]]),
                 np.array([[24.0, 23.0, 5.0, 0.05], [30.0, 27.0, 5.0, 0.05], [36.0, 31.0, 5.0, 0.05]])):

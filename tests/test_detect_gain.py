@@ -7,7 +7,7 @@ from dataclasses import replace
 import numpy as np
 
 from conecal.detect.crowded import detect_frame
-from conecal.detect.frame import Blob, DetectOptions
+from conecal.detect.options import Blob, DetectOptions
 from conecal.detect.ring import ring_mask
 from conecal.detect.gain import linearised, measure_gain, response_lambda, with_background, with_gain_sigma
 from conecal.detect.noise import noise_correlation, noise_pixel

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from conecal.detect import DetectOptions, detect_frame
-from conecal.detect.frame import Blob
+from conecal.detect.options import Blob
 from conecal.detect.overlap import render
 from conecal.detect.rod import on_rods, rod_like
 

@@ -1,7 +1,7 @@
 """Sphere markers: candidates, sub-pixel centroids, identities across frames."""
 
 from .crowded import detect_frame
-from .frame import Blob, DetectOptions
+from .options import Blob, DetectOptions
 from .pipeline import MARKERS_FORMAT, detect_scan, options_for_scan
 from .track import track
 

@@ -33,7 +33,7 @@ from dataclasses import replace
 import numpy as np
 
 from .background import fit_profile, smooth_under, structured
-from .frame import Blob, DetectOptions
+from .options import Blob, DetectOptions
 from .overlap import disc_misfit, fit_group, group_box, joint_sigma, odd_misfit
 
 # the fitted circle's centre and the cone-beam shadow's attenuation centroid:

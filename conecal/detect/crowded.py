@@ -20,7 +20,8 @@ from dataclasses import replace
 
 import numpy as np
 
-from .frame import ROUND_ANISOTROPY, Blob, DetectOptions, chord_like, detect_blobs, refine, window_reach
+from .frame import ROUND_ANISOTROPY, chord_like, detect_blobs, refine, window_reach
+from .options import Blob, DetectOptions
 from .background import fit_profile, structured
 from .centre import model_centre
 from .edge import CONE_OFFSET_PX, beside_edge

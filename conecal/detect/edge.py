@@ -12,7 +12,8 @@ from dataclasses import replace
 import numpy as np
 
 from .background import fit_profile, structured
-from .frame import Blob, DetectOptions, refine
+from .frame import refine
+from .options import Blob, DetectOptions
 from .overlap import disc_misfit, fit_group, joint_sigma
 
 # how far a centroid and a model's centre may differ before the gap counts as

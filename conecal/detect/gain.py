@@ -41,7 +41,8 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from ..stats import mad_sigma
-from .frame import Blob, DetectOptions, window_radius
+from .frame import window_radius
+from .options import Blob, DetectOptions
 from .ring import keep_out, ring_mask
 
 MIN_ALONE = 30     # markers measured alone a scan needs before eta is trusted

@@ -14,7 +14,8 @@ from .. import __version__
 from ..scan import Scan
 from . import kernels
 from .crowded import detect_frame
-from .frame import DetectOptions, NonFiniteFrame
+from .frame import NonFiniteFrame
+from .options import DetectOptions
 from .gain import MIN_ALONE, linearised, response_lambda, with_background, with_gain_sigma
 from .noise import noise_correlation, noise_pixel, noise_small
 from .peaks import small_frame

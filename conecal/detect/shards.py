@@ -16,7 +16,7 @@ from .. import __version__
 from ..errors import InputError
 from ..parts import cover, frame_range, read_parts
 from ..scan import Scan
-from .frame import Blob, DetectOptions
+from .options import Blob, DetectOptions
 from .pipeline import MARKERS_FORMAT, assemble
 
 PART_NOTE = "part of a scan (detect --frames/--part): raw measurements; join the parts with conecal merge"

@@ -18,7 +18,7 @@ from dataclasses import replace
 
 import numpy as np
 
-from .frame import DetectOptions
+from .options import DetectOptions
 
 # measured / typed shadow size within this factor either way: the typed size
 # is kept (the search range is 0.6-1.6x wide; a blob's moment diameter reads
