@@ -10,7 +10,13 @@ blur), then one of these noise models:
 - ``counts``: intensities I0 exp(-a) with Poisson-like noise, the log
   taken afterwards (noise grows with attenuation);
 - ``jpeg8``: the white scan windowed to 8 bits and JPEG-compressed at
-  quality 75, mapped back to attenuation with the known window.
+  quality 75, mapped back to attenuation with the known window;
+- ``jpeg8_fine``: the same with noise of 0.4 grey levels, under the display's
+  step: flat background holds JPEG's 8 px blocks, a shadow's slopes the
+  steps and ringing;
+- ``counts_blurred``: ``counts`` whose noise then passes through a
+  scintillator's blur (sigma 1 px): the noise grown in a shadow is as
+  correlated as the background's.
 
 Each is measured with the nominal shadow size exact and wrong by -25 % and
 +25 % (the ``diameter_px`` range a user derives from a nominal
@@ -62,13 +68,18 @@ def noisy(kind, clean, rng, sd=0.004, blur=1.0):
     if kind == "blurred":
         n = cv2.GaussianBlur(rng.normal(0, 1, clean.shape).astype(np.float32), (0, 0), blur)
         return clean + sd * n / n.std()
-    if kind == "counts":
+    if kind in ("counts", "counts_blurred"):
         i0 = 1.0 / sd**2 * np.exp(-0.1)      # sd at the background's level
         cts = i0 * np.exp(-clean)
-        return -np.log(np.maximum(cts + rng.normal(0, 1, clean.shape) * np.sqrt(cts), 1.0) / i0)
-    if kind == "jpeg8":
+        n = rng.normal(0, 1, clean.shape) * np.sqrt(cts)
+        if kind == "counts_blurred":
+            g = cv2.GaussianBlur(rng.normal(0, 1, clean.shape).astype(np.float32), (0, 0), blur)
+            n = cv2.GaussianBlur(n.astype(np.float32), (0, 0), blur) / g.std()   # the same per-pixel sd
+        return -np.log(np.maximum(cts + n, 1.0) / i0)
+    if kind in ("jpeg8", "jpeg8_fine"):
         lo, hi = 0.08, 0.1 + 0.08 * 16
-        a = clean + rng.normal(0, 2.5 * (hi - lo) / 255, clean.shape)   # noise of 2.5 grey levels
+        grey = 2.5 if kind == "jpeg8" else 0.4
+        a = clean + rng.normal(0, grey * (hi - lo) / 255, clean.shape)   # noise of 2.5 (0.4) grey levels
         q = np.clip(np.rint((a - lo) / (hi - lo) * 255), 0, 255).astype(np.uint8)
         ok, buf = cv2.imencode(".jpg", q, [cv2.IMWRITE_JPEG_QUALITY, 75])
         return cv2.imdecode(buf, cv2.IMREAD_GRAYSCALE).astype(np.float64) / 255 * (hi - lo) + lo
@@ -78,10 +89,12 @@ def noisy(kind, clean, rng, sd=0.004, blur=1.0):
 def main():
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--trials", type=int, default=8)
+    ap.add_argument("--kinds", nargs="+", default=["white", "blurred", "counts", "counts_blurred", "jpeg8",
+                                                    "jpeg8_fine"])
     a = ap.parse_args()
     print("| noise | nominal size | class | markers | RMS px | pull std | kappa | s/frame |")
     print("|---|---|---|---|---|---|---|---|")
-    for kind in ("white", "blurred", "counts", "jpeg8"):
+    for kind in a.kinds:
         for scale in (1.0, 0.75, 1.25):
             rng = np.random.default_rng(7)
             acc = {}
