@@ -31,6 +31,7 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
+from ..stats import mad_sigma
 from . import kernels
 from .chain import anisotropy, chain_like, rough_blob
 from .noise import noise_pixel
@@ -234,7 +235,7 @@ def refine(a: np.ndarray, x0: float, y0: float, r0: float, opt: DetectOptions, o
     # (or the shadow's own odd scatter, robustly: an 8-bit display's steps and
     # JPEG's ringing on its slopes are noise, not structure; against the ring's
     # noise alone 42 of 96 lone spheres of an 8-bit JPEG read clutter)
-    s_odd = np.maximum(s_odd, 1.4826 * float(np.median(np.abs(odd))))
+    s_odd = np.maximum(s_odd, float(mad_sigma(odd, centre=False)))
     rho = np.sqrt(ddx[win] ** 2 + ddy[win] ** 2)
     # The centroid's error is the sum of (x - c) times the odd part of the
     # noise, so the odd part seen in the window measures the noise this shadow
