@@ -128,22 +128,28 @@ def test_sigma_counts_noise_correlated_over_a_few_pixels():
     assert 0.75 < np.std(np.array(err) / np.array(sig)) < 1.35
 
 
-def test_sigma_of_8_bit_jpeg_shadows_is_measured_from_their_own_odd_part():
-    """8-bit steps and JPEG blocks make a shadow noisier than the frame's
-    noise model says; the odd part of the shadow under reflection about its
-    centroid measures that noise (the pull was 1.43 from the model alone)."""
+def _bench_sigma_frames(kind: str, n: int = 3):
+    """``n`` of bench_sigma's scenes under noise ``kind`` (seed 7), each as
+    (spheres, image, options as a scan measures them, detected blobs)."""
     from benchmarks.bench_sigma import SHAPE, draw, noisy, scene
     from conecal.detect import DetectOptions, detect_frame
     from conecal.detect.noise import noise_correlation, noise_pixel
 
     rng = np.random.default_rng(7)
-    err, sig, flagged = [], [], 0
-    for _ in range(3):
+    for _ in range(n):
         sph = scene(rng)
-        img = noisy("jpeg8", draw(SHAPE, sph, 1.0).astype(np.float64) + 0.1, rng).astype(np.float32)
+        img = noisy(kind, draw(SHAPE, sph, 1.0).astype(np.float64) + 0.1, rng).astype(np.float32)
         opt = DetectOptions(diameter_px=(7.2, 17.6), blur_px=1.0, pixel_noise=noise_pixel(img),
                             noise_kappa=noise_correlation(img))
-        blobs = detect_frame(img, opt)
+        yield sph, img, opt, detect_frame(img, opt)
+
+
+def test_sigma_of_8_bit_jpeg_shadows_is_measured_from_their_own_odd_part():
+    """8-bit steps and JPEG blocks make a shadow noisier than the frame's
+    noise model says; the odd part of the shadow under reflection about its
+    centroid measures that noise (the pull was 1.43 from the model alone)."""
+    err, sig, flagged = [], [], 0
+    for sph, _, _, blobs in _bench_sigma_frames("jpeg8"):
         for s in sph:
             b = min(blobs, key=lambda b: np.hypot(b.x - s[0], b.y - s[1]))
             flagged += bool(b.flags)
@@ -163,18 +169,8 @@ def test_an_8_bit_jpegs_steps_on_lone_shadows_are_not_clutter():
     spheres clutter in bench_sigma; against the window's own robust odd
     scatter, none. (Their σ still swings with the frame's kappa, which reads
     1 or 100 where most background pixels are one grey level: RESULTS.)"""
-    from benchmarks.bench_sigma import SHAPE, draw, noisy, scene
-    from conecal.detect import DetectOptions, detect_frame
-    from conecal.detect.noise import noise_correlation, noise_pixel
-
-    rng = np.random.default_rng(7)
     err, flagged = [], 0
-    for _ in range(3):
-        sph = scene(rng)
-        img = noisy("jpeg8_fine", draw(SHAPE, sph, 1.0).astype(np.float64) + 0.1, rng).astype(np.float32)
-        opt = DetectOptions(diameter_px=(7.2, 17.6), blur_px=1.0, pixel_noise=noise_pixel(img),
-                            noise_kappa=noise_correlation(img))
-        blobs = detect_frame(img, opt)
+    for sph, _, _, blobs in _bench_sigma_frames("jpeg8_fine"):
         for s in sph:
             b = min(blobs, key=lambda b: np.hypot(b.x - s[0], b.y - s[1]))
             flagged += "clutter" in b.flags
