@@ -18,11 +18,11 @@ from __future__ import annotations
 
 import cv2
 import numpy as np
-from scipy.linalg import solveh_banded
 
 from ..errors import FitError
 from ..fit.core import Parameter, solve
-from .overlap import group_box, mask_weights, render
+from .profile_kernels import profile_fit
+from .overlap import group_box, mask_weights, render, render_jacobian
 
 _KNOT_PX = 1.0
 # curvatures (1/px) tried: level lines straight, or bent to circles of radius
@@ -150,49 +150,18 @@ def fit_profile(a: np.ndarray, spheres: np.ndarray, blur: float, noise: float, i
     n_pix = h * w
     reg_w = 0.05 / noise
 
-    def coords(phi, kappa):
-        u = dx * np.cos(phi) + dy * np.sin(phi)
-        v = -dx * np.sin(phi) + dy * np.cos(phi)
-        return u.ravel(), v.ravel(), (u + kappa * v * v).ravel()
-
     k = n_knots
-    D2 = (np.eye(k, k=-1) - 2 * np.eye(k) + np.eye(k, k=1))[1:-1]
-    reg = reg_w**2 * (D2.T @ D2)
     w2 = wv * wv
-
-    bands = [np.diag(reg, q) for q in (0, 1, 2)]
+    dxr, dyr = dx.ravel(), dy.ravel()
 
     def profile(phi, kappa, extra, target):
         """Knot values and the ``extra`` columns' coefficients that best
-        give ``target``, with chi-square: normal equations built from the
-        basis's two non-zeros per pixel (a dense 2000 x 60 product cost 30x),
-        the knots' block (five bands) solved banded and the few extra
-        columns by their Schur complement."""
-        _, v, s = coords(phi, kappa)
-        i, t = _hat(s, s_lo, k)
-        X = np.column_stack([v] + extra)
-        m = X.shape[1]
-        a0, a1 = w2 * (1 - t), w2 * t
-        d = np.bincount(i, a0 * (1 - t), k) + np.bincount(i + 1, a1 * t, k)
-        off = np.bincount(i, a0 * t, k)[:k - 1]
-        BX = np.stack([np.bincount(i, a0 * X[:, c], k) + np.bincount(i + 1, a1 * X[:, c], k) for c in range(m)], 1)
-        C = (X * w2[:, None]).T @ X
-        rB = np.bincount(i, a0 * target, k) + np.bincount(i + 1, a1 * target, k)
-        rX = (X * w2[:, None]).T @ target
-        eps = 1e-9 * (d.sum() + bands[0].sum() + np.trace(C)) / (k + m)
-        ab = np.zeros((3, k))
-        ab[2] = bands[0] + d + eps
-        ab[1, 1:] = bands[1] + off
-        ab[0, 2:] = bands[2]
-        try:
-            Z = solveh_banded(ab, np.column_stack([BX, rB]))
-            cx_ = np.linalg.solve(C + eps * np.eye(m) - BX.T @ Z[:, :m], rX - BX.T @ Z[:, m])
-        except np.linalg.LinAlgError:
-            return np.zeros(k + m), np.inf, np.zeros_like(target)
-        coef = np.concatenate([Z[:, m] - Z[:, :m] @ cx_, cx_])
-        model = coef[:k][i] * (1 - t) + coef[:k][i + 1] * t + X @ coef[k:]
-        chi2 = float(np.sum(w2 * (model - target) ** 2) + coef[:k] @ reg @ coef[:k])
-        return coef, chi2, model
+        give ``target``, with chi-square and the model
+        (``profile_kernels.profile_fit``: the basis's two non-zeros per pixel; a
+        dense 2000 x 60 product cost 30x, and numpy's steps around it half
+        the fit)."""
+        return profile_fit(dxr, dyr, phi, kappa, s_lo, _KNOT_PX, k, w2,
+                           np.column_stack(extra) if extra else np.zeros((n_pix, 0)), target, reg_w**2)
 
     # direction and bend first, from the background alone (sphere held at its
     # guess): the direction at straight level lines, then the bend (a tube's
@@ -265,7 +234,7 @@ def _spheres(img: np.ndarray, sp: np.ndarray, wv: np.ndarray, blur: float):
         return wv * (render((h, w), p.reshape(k, 4), blur).ravel() - y)
 
     def jacobian(p):
-        return wv[:, None] * render((h, w), p.reshape(k, 4), blur, jacobian=True)[1]
+        return wv[:, None] * render_jacobian((h, w), p.reshape(k, 4), blur)
 
     params = []
     for j, (x, yv, R, mu) in enumerate(sp):

@@ -11,6 +11,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 from ..stats import MAD_TO_SIGMA
+from .profile_kernels import profile_fit
 
 
 @njit(cache=True)
@@ -317,9 +318,10 @@ def chord_patch(spheres, h, w, ss, jacobian):
                         q = r2 - dx * dx - dy * dy
                         if q <= 0.0:
                             continue
-                        a0 += np.sqrt(q)
+                        sq = np.sqrt(q)
+                        a0 += sq
                         if jacobian:
-                            inv = 1.0 / np.sqrt(max(q, floor))
+                            inv = 1.0 / (sq if q > floor else np.sqrt(floor))
                             a1 += dx * inv
                             a2 += dy * inv
                             a3 += inv
@@ -343,3 +345,6 @@ def warm_up() -> None:
     window_moments(roi, coef, 8.0, 8.0, 8.0, 8.0, 3.0)
     for jacobian in (False, True):
         chord_patch(np.array([[4.0, 4.0, 2.0, 0.1]]), 8, 8, 3, jacobian)
+    z = np.zeros(4)
+    for extra in (np.zeros((4, 0)), np.zeros((4, 1)), np.zeros((4, 1), np.float32)):
+        profile_fit(z, z, 0.0, 0.0, -2.0, 1.0, 6, z, extra, z, 1.0)

@@ -39,13 +39,21 @@ def render(shape, spheres: np.ndarray, blur: float, jacobian: bool = False):
     sphere, (rows*cols, 4k) float32."""
     h, w = shape
     sph = np.ascontiguousarray(np.asarray(spheres, np.float64).reshape(-1, 4))
-    # the blur is linear: once over the patch, every sphere's derivatives as channels
-    f = _blur(chord_patch(sph, h, w, _SS, jacobian), blur).reshape(h, w, -1)
     if not jacobian:
-        return f[..., 0]
-    J = f.reshape(h * w, -1)
+        return _blur(chord_patch(sph, h, w, _SS, False), blur).reshape(h, w)
+    J = render_jacobian(shape, sph, blur)
+    f = J.reshape(h, w, -1)
     model = (f[..., 3::4] * sph[:, 3].astype(np.float32)).sum(axis=2) if len(sph) else np.zeros((h, w), np.float32)
     return model, J
+
+
+def render_jacobian(shape, spheres: np.ndarray, blur: float) -> np.ndarray:
+    """:func:`render`'s d model / d(x, y, R, mu) per sphere alone,
+    (rows*cols, 4k) float32 (a fit's Jacobian: its model is not needed)."""
+    h, w = shape
+    sph = np.ascontiguousarray(np.asarray(spheres, np.float64).reshape(-1, 4))
+    # the blur is linear: once over the patch, every sphere's derivatives as channels
+    return _blur(chord_patch(sph, h, w, _SS, True), blur).reshape(h * w, -1)
 
 
 # OpenCV filters at most this many channels at once (128 in OpenCV 5, 512 in
@@ -175,8 +183,9 @@ def fit_group(a: np.ndarray, spheres: np.ndarray, blur: float, noise: float, mas
 
     def jacobian(p):
         sph, _ = unpack(p)
-        np.multiply(render((h, w), sph, blur, jacobian=True)[1], wv[:, None], out=Jw[:, :4 * k])
-        return Jw.copy()
+        np.multiply(render_jacobian((h, w), sph, blur), wv[:, None], out=Jw[:, :4 * k])
+        # (not a copy: the solver reads each Jacobian before it asks for the next)
+        return Jw
 
     params = []
     for i, (x, y, R, mu) in enumerate(s0):

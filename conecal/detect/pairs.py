@@ -109,8 +109,7 @@ def fit_covered(a, out: list, opt, noise: float, invalid, peaks, R1: float, mu1)
     is tried once more, beside its sibling. ``R1``, ``mu1``: the frame's
     sphere radius (px) and contrast."""
     res = list(out)
-    lone = [b for b in out if not b.flags]
-    declared = declared_radii(out, opt.shadow_px)
+    lone, declared = _classes(out, opt)
     todo = [(b, True) for b in out
             if b.pair or ("overlap" in b.flags and b.sigma > _COVERED * b.radius) or _suspect(b, lone, mu1)]
     while todo:
@@ -127,6 +126,13 @@ def fit_covered(a, out: list, opt, noise: float, invalid, peaks, R1: float, mu1)
             res = rest + parts
             todo += [(p, False) for p in parts if p.pair and again]
     return res
+
+
+def _classes(out: list, opt) -> tuple[list, list]:
+    """The markers of ``out`` measured alone (unflagged) and the declared
+    spheres' shadow radii (px) they show: what :func:`.size.class_radius`
+    reads a blob's size class from."""
+    return [b for b in out if not b.flags], declared_radii(out, opt.shadow_px)
 
 
 def _suspect(b, lone: list, mu1) -> bool:
@@ -164,8 +170,7 @@ def fit_lost(a, lost: list, out: list, opt, noise: float, invalid, peaks, R1: fl
     new: list = []
     if peers < _LOST_PEERS or mu1 is None:
         return new
-    lone = [b for b in out if not b.flags]
-    declared = declared_radii(out, opt.shadow_px)
+    lone, declared = _classes(out, opt)
     for b in lost:
         if b.mu_px * b.radius**3 < _LOST_SPHERES * mu1 * R1**3:
             continue
@@ -340,7 +345,7 @@ def _heavy(blobs: list, level: np.ndarray, ok: np.ndarray, shadow_px, depth_rati
     return heavy
 
 
-def on_top(a: np.ndarray, m, R1, mu1, blur: float, noise: float, kappa: float, mask_out, invalid,
+def on_top(a: np.ndarray, m, radii, mu1, blur: float, noise: float, kappa: float, mask_out, invalid,
            pressed=(), lenient: bool = False):
     """Blob ``m``, whose σ covers a second sphere nearly on top (``m.pair``) or
     beside it (an elongation beyond any sphere's), as two spheres, else three:
@@ -355,8 +360,8 @@ def on_top(a: np.ndarray, m, R1, mu1, blur: float, noise: float, kappa: float, m
     around them, with chi-square ``_TWO_GAIN`` times one's or less (not
     asked with markers pressed against it: the patch around them all holds
     more background); each has a size of the frame's spheres (0.6-1.6 of
-    ``R1``, px, or of one of them when several: the frame's and the blob's
-    size class, :func:`.size.class_radius`), lies ``_TWO_APART`` of the smallest
+    one of ``radii``, px: the frame's and the blob's size class's,
+    :func:`.size.class_radius`), lies ``_TWO_APART`` of the smallest
     or more from the others and holds the frame's contrast
     (0.6-1.6 ``mu1``) or, one at most, two spheres' (1.6-2.6); a part
     denser than ``_HIDDEN_DENSITY`` may hold one more hidden in it: flagged
@@ -393,7 +398,7 @@ def on_top(a: np.ndarray, m, R1, mu1, blur: float, noise: float, kappa: float, m
             fit = fit_group(a, np.vstack([start, rest]), blur, noise, mask_out, invalid, box=one[0], quadratic=True)
             if fit is not None and (best is None or fit[4] < best[4]):
                 best = fit
-        got = _on_top_parts(a, [m] * k + list(pressed), best, one[4] if not len(rest) else None, on1, R1, mu1,
+        got = _on_top_parts(a, [m] * k + list(pressed), best, one[4] if not len(rest) else None, on1, radii, mu1,
                             blur, noise, kappa, mask_out, invalid, lenient)
         # (two that fit to the noise are the answer; where no sum of spheres
         # does, three only if they leave _THIRD times less misfit than two)
@@ -404,7 +409,7 @@ def on_top(a: np.ndarray, m, R1, mu1, blur: float, noise: float, kappa: float, m
     return None if found is None else found[0]
 
 
-def _on_top_parts(a, was: list, fit, chi2_one, on_one: float, R1, mu1: float, blur, noise, kappa, mask_out,
+def _on_top_parts(a, was: list, fit, chi2_one, on_one: float, radii, mu1: float, blur, noise, kappa, mask_out,
                   invalid, lenient: bool = False):
     """:func:`on_top`'s parts from joint ``fit`` (each part from the
     marker ``was`` it stands for) and their misfit on the discs, or None
@@ -416,7 +421,7 @@ def _on_top_parts(a, was: list, fit, chi2_one, on_one: float, R1, mu1: float, bl
     _, sph, sig, _, chi2, _ = fit
     dense = sph[:, 3] / mu1
     gaps = np.hypot(sph[:, None, 0] - sph[None, :, 0], sph[:, None, 1] - sph[None, :, 1])
-    sizes = np.atleast_1d(np.asarray(R1, float))
+    sizes = np.atleast_1d(np.asarray(radii, float))
     if (np.any(np.all((sph[:, 2, None] < 0.6 * sizes) | (sph[:, 2, None] > 1.6 * sizes), axis=1))
             or np.any((dense < (_LENIENT_CONTRAST if lenient else 0.6)) | (dense > 2.6))
             or np.sum(dense > 1.6) > 1 or np.min(gaps + np.eye(len(sph)) * 1e9) < _TWO_APART * sizes.min()

@@ -294,10 +294,15 @@ def _levenberg_marquardt(fun, jac, x0, scale, max_nfev, tol, lo=None, hi=None, r
     lam, nfev, njev, status, msg = 1e-3, 1, 0, 0, "maximum evaluations"
     while nfev < max_nfev:
         J_raw = jac(x)
-        J = _scaled(J_raw, scale)
         njev += 1
-        g = J.T @ r
-        H = _dense(J.T @ J)
+        if isinstance(J_raw, np.ndarray):
+            # (the scales applied to the small products, not to J: thousands of small fits per frame)
+            g = (J_raw.T @ r) * scale
+            H = (J_raw.T @ J_raw) * np.outer(scale, scale)
+        else:
+            J = _scaled(J_raw, scale)
+            g = J.T @ r
+            H = _dense(J.T @ J)
         d = np.maximum(np.diag(H), 1e-12 * max(np.diag(H).max(), 1e-300))
         # a parameter resting on a bound that the gradient pushes beyond is held for this step
         held = np.zeros(len(x), bool) if lo is None else (((x <= lo) & (g > 0)) | ((x >= hi) & (g < 0)))
