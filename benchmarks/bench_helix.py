@@ -35,7 +35,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from conecal.detect import DetectOptions, detect_frame  # noqa: E402
-from conecal.detect.noise import noise_correlation, noise_pixel  # noqa: E402
+from conecal.detect.noise import noise_autocorrelation, noise_correlation, noise_pixel  # noqa: E402
 from conecal.detect.pipeline import scan_filter  # noqa: E402
 from conecal.detect.size import measured_size  # noqa: E402
 from conecal.stats import mad_sigma  # noqa: E402
@@ -95,12 +95,14 @@ def main():
                 # middle frame's shadows measured at the typed size
                 mid = np.ascontiguousarray(frames[len(frames) // 2], np.float32)
                 typed = measured_size(detect_frame(mid, replace(typed, pixel_noise=noise_pixel(mid),
-                                                                noise_kappa=noise_correlation(mid))), typed)
+                                                                noise_kappa=noise_correlation(mid),
+                                                                noise_rho=noise_autocorrelation(mid))), typed)
                 scales_seen.append(typed.size_scale)
             for img in frames:
                 # the generator alternates the blur before and after the noise: a
                 # real scan keeps one, so the noise is measured per frame here
-                opt = replace(typed, pixel_noise=noise_pixel(img), noise_kappa=noise_correlation(img))
+                opt = replace(typed, pixel_noise=noise_pixel(img), noise_kappa=noise_correlation(img),
+                              noise_rho=noise_autocorrelation(img))
                 t0 = time.perf_counter()
                 found.append(detect_frame(np.ascontiguousarray(img, np.float32), opt))
                 t_tot += time.perf_counter() - t0

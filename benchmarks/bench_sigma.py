@@ -49,6 +49,10 @@ try:
     from conecal.detect.noise import noise_correlation  # noqa: E402
 except ImportError:          # before the correlation factor existed
     noise_correlation = None
+try:
+    from conecal.detect.noise import noise_autocorrelation  # noqa: E402
+except ImportError:          # before the autocorrelation was measured
+    noise_autocorrelation = None
 
 SHAPE = (384, 384)
 
@@ -108,6 +112,8 @@ def main():
                 if noise_correlation is not None:
                     extra["noise_kappa"] = noise_correlation(img)
                     kap.append(extra["noise_kappa"])
+                if noise_autocorrelation is not None:
+                    extra["noise_rho"] = noise_autocorrelation(img)
                 opt = DetectOptions(diameter_px=(8 * scale * 0.9, 16 * scale * 1.1), blur_px=1.0,
                                     pixel_noise=noise_pixel(img), **extra)
                 t0 = time.perf_counter()

@@ -33,6 +33,7 @@ from dataclasses import replace
 import numpy as np
 
 from .background import fit_profile, smooth_under, structured
+from .frame import window_radius
 from .options import Blob, DetectOptions
 from .overlap import disc_misfit, fit_group, group_box, joint_sigma, odd_misfit
 
@@ -97,7 +98,7 @@ def model_centre(a: np.ndarray, b: Blob, opt: DetectOptions, noise: float, inval
     sph = fit[1][0]
     if not _like(sph, b):
         return b
-    s_fit = joint_sigma(fit[2][0], opt.noise_kappa)
+    s_fit = joint_sigma(fit[2][0], opt.kappa_for("model", fit[1][0][2]))
     gap2 = (sph[0] - b.x) ** 2 + (sph[1] - b.y) ** 2
     if np.isfinite(s_fit) and gap2 > _AGREE * (b.sigma**2 + s_fit**2) and gap2 > 2 * MODEL_CENTROID_PX**2 \
             and disc_misfit(a, fit, opt.blur_px, noise, others, invalid)[1] <= _AROUND_HOLDS:
@@ -115,7 +116,11 @@ def model_centre(a: np.ndarray, b: Blob, opt: DetectOptions, noise: float, inval
         m = _apart_centre(a, replace(b, flags=sorted(set(b.flags) | {"clutter"}), sigma=wide), opt, noise, invalid,
                           others, typical, odd=True, own=(start, noise, fit))
         return replace(m, flags=m.flags if flag else b.flags)
-    if not np.isfinite(s_fit) or not s_fit < b.sigma <= _NOISE_LIKE * s_fit \
+    # (the bar is on the estimators' white-noise ratio: noise correlated over
+    # more than the shadow's radius widens the centroid's σ more than the model's)
+    like = _NOISE_LIKE * np.sqrt(opt.kappa_for("centroid", window_radius(b.radius, opt.blur_px))
+                                 / opt.kappa_for("model", sph[2]))
+    if not np.isfinite(s_fit) or not s_fit < b.sigma <= like * s_fit \
             or gap2 > _AGREE * (b.sigma**2 + s_fit**2):
         return b
     # (a gap beyond both noises, within the bar, is counted as the model's error)
@@ -167,7 +172,7 @@ def _apart_centre(a: np.ndarray, b: Blob, opt: DetectOptions, noise: float, inva
     if b.pair and (typical[1] is None or fit[1][0][3] > _ONE_CONTRAST * typical[1]):
         return b
     # (sphere (x, y, R, mu), centre σ) on the quadratic background
-    quad = fit[1][0], joint_sigma(fit[2][0], opt.noise_kappa)
+    quad = fit[1][0], joint_sigma(fit[2][0], opt.kappa_for("model", fit[1][0][2]))
     # (a patch whose scatter reads as structure but where no edge's profile
     # beats a plane is measured as one without: on the first renderer's log
     # display the profile found none for beads whose centroids were 0.1 px off
@@ -211,7 +216,7 @@ def _fit_less(a: np.ndarray, box, bg: np.ndarray, start: np.ndarray, opt: Detect
     fit = fit_group((a[q0:q1, c0:c1] - bg).astype(np.float32), start - off, opt.blur_px, noise,
                     mask_out=[(x - c0, y - q0, r) for x, y, r in others],
                     invalid=None if invalid is None else invalid[q0:q1, c0:c1], box=(0, 0, c1 - c0, q1 - q0))
-    return None if fit is None else (fit[1][0] + off, joint_sigma(fit[2][0], opt.noise_kappa))
+    return None if fit is None else (fit[1][0] + off, joint_sigma(fit[2][0], opt.kappa_for("model", fit[1][0][2])))
 
 
 def _plausible(sph: np.ndarray, b: Blob, typical) -> bool:

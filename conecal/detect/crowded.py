@@ -477,7 +477,7 @@ def _member(work, b0: Blob, sph: np.ndarray, sig: np.ndarray, opt: DetectOptions
     ``sig``: its joint-fit sphere (x, y, R, mu) and σ."""
     b = refine(work, sph[0], sph[1], sph[2], opt, others, noise, invalid)
     x_fit, y_fit = sph[:2]
-    s_fit = joint_sigma(sig, opt.noise_kappa)
+    s_fit = joint_sigma(sig, opt.kappa_for("model", sph[2]))
     if b is not None and "clutter" in b0.flags and np.hypot(b.x - x_fit, b.y - y_fit) <= 0.5 * sph[2]:
         # an edge's background beside it (its neighbours' models removed):
         # the joint fit's plane did not follow it, so its centre is no check

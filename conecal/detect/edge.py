@@ -82,7 +82,7 @@ def _edge_model(work, b: Blob, b2: Blob | None, sph: np.ndarray, opt: DetectOpti
         return b
     _, s2, sig, _, chi2, n_pix = fit
     x, y, R, mu = s2[0]
-    s_fit = joint_sigma(sig[0], opt.noise_kappa)
+    s_fit = joint_sigma(sig[0], opt.kappa_for("model", R))
     on, off = disc_misfit(work, fit, opt.blur_px, noise, others, invalid)
     bar = max(_EDGE_MODEL_CHI2, off, min(_EDGE_UNDER_SHADOW * off, 3 * _EDGE_MODEL_CHI2))
     if (on > bar or not 0.25 * opt.diameter_px[0] <= R <= 0.55 * opt.diameter_px[1]

@@ -199,7 +199,8 @@ def refine(a: np.ndarray, x0: float, y0: float, r0: float, opt: DetectOptions, o
     # the fitted background's slope uncertainty moves the centroid too
     slope_sig = sig_bg / (np.sqrt(max(n_in, 1)) * s_ring)
     sigma2 += (slope_sig * sum_e2 / V) ** 2
-    sigma2 *= opt.noise_kappa   # noise correlated over a few px averages out less
+    kappa = opt.kappa_for("centroid", rw)
+    sigma2 *= kappa   # noise correlated over a few px averages out less
     clutter = noise > 0 and sig_bg > 1.5 * noise + 1e-6
     if clutter:
         # structure the background model cannot follow: its excess taken as a
@@ -244,7 +245,7 @@ def refine(a: np.ndarray, x0: float, y0: float, r0: float, opt: DetectOptions, o
     # lowers its variance by w.
     fx, fy = (2 * cx) % 1.0, (2 * cy) % 1.0
     w = ((1 - fx) ** 2 + fx ** 2) * ((1 - fy) ** 2 + fy ** 2)
-    own2 = opt.noise_kappa * float((rho * rho * 4 * odd * odd).sum()) / (1 + w) / 2 / V**2
+    own2 = kappa * float((rho * rho * 4 * odd * odd).sum()) / (1 + w) / 2 / V**2
     sigma2 = max(sigma2, own2)
     asym = float((rho * np.maximum(np.abs(odd) - 3 * s_odd, 0.0)).sum() / V)
     if asym > 3 * np.sqrt(sigma2) and asym > 0.02:

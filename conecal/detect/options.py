@@ -39,6 +39,9 @@ class DetectOptions:
     # the noise's correlation factor (``noise_correlation``): a centroid's
     # noise variance is this times the white-noise formula; measured once per scan
     noise_kappa: float = 1.0
+    # the noise's autocorrelation (``noise.noise_autocorrelation``; (): not
+    # measured): how much of kappa a small shadow's centre takes (``kappa_for``)
+    noise_rho: tuple = ()
     # neighbour-difference noise (``noise_small`` at ``factor``, full-resolution
     # units) of the frame ``pixel_noise`` was measured on: a frame noisier than
     # that by 30 % measures its own pixel noise (0: never)
@@ -64,6 +67,14 @@ class DetectOptions:
         (1 + e) / (1 - e), e its extent over the measured size's source distance (0: unknown)."""
         e = self.depth_extent * (self.size_scale or 1.0)
         return (1 + e) / (1 - e) if 0 < e < 0.95 else 0.0
+
+    def kappa_for(self, kind: str, radius: float) -> float:
+        """``noise_kappa`` as it applies to a centre measured by ``kind``
+        (``model`` fit of a shadow of ``radius`` px, or ``centroid`` over a
+        window of that radius): :func:`conecal.detect.noise.weights_kappa`."""
+        from .noise import weights_kappa
+
+        return weights_kappa(self.noise_kappa, self.noise_rho, kind, radius, self.blur_px)
 
     @property
     def factor(self) -> int:

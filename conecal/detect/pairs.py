@@ -119,7 +119,7 @@ def fit_covered(a, out: list, opt, noise: float, invalid, peaks, R1: float, mu1)
         pressed = [o for o in res if o is not b and np.hypot(o.x - b.x, o.y - b.y) < _PRESSED * (o.radius + b.radius)]
         mask = [n for n in neighbours(b, res, peaks, opt)
                 if all(np.hypot(n[0] - o.x, n[1] - o.y) > 0.5 * o.radius for o in pressed)]
-        parts = on_top(a, b, (R1, class_radius(b, lone, R1, declared)), mu1, opt.blur_px, noise, opt.noise_kappa,
+        parts = on_top(a, b, (R1, class_radius(b, lone, R1, declared)), mu1, opt.blur_px, noise, _model_kappa(opt),
                        mask, invalid, pressed)
         rest = [o for o in res if o is not b and all(o is not q for q in pressed)]
         if parts and _clear(parts, rest, 0.5):
@@ -133,6 +133,11 @@ def _classes(out: list, opt) -> tuple[list, list]:
     spheres' shadow radii (px) they show: what :func:`.size.class_radius`
     reads a blob's size class from."""
     return [b for b in out if not b.flags], declared_radii(out, opt.shadow_px)
+
+
+def _model_kappa(opt):
+    """The noise correlation factor of a sphere fit's centre, by its radius (px)."""
+    return lambda R: opt.kappa_for("model", R)
 
 
 def _suspect(b, lone: list, mu1) -> bool:
@@ -174,7 +179,7 @@ def fit_lost(a, lost: list, out: list, opt, noise: float, invalid, peaks, R1: fl
     for b in lost:
         if b.mu_px * b.radius**3 < _LOST_SPHERES * mu1 * R1**3:
             continue
-        parts = on_top(a, b, (R1, class_radius(b, lone, R1, declared)), mu1, opt.blur_px, noise, opt.noise_kappa,
+        parts = on_top(a, b, (R1, class_radius(b, lone, R1, declared)), mu1, opt.blur_px, noise, _model_kappa(opt),
                        neighbours(b, out + new + lost, peaks, opt), invalid, lenient=True)
         if parts and _clear(parts, out + new, 0.8):
             new += parts
@@ -345,7 +350,7 @@ def _heavy(blobs: list, level: np.ndarray, ok: np.ndarray, shadow_px, depth_rati
     return heavy
 
 
-def on_top(a: np.ndarray, m, radii, mu1, blur: float, noise: float, kappa: float, mask_out, invalid,
+def on_top(a: np.ndarray, m, radii, mu1, blur: float, noise: float, kappa, mask_out, invalid,
            pressed=(), lenient: bool = False):
     """Blob ``m``, whose σ covers a second sphere nearly on top (``m.pair``) or
     beside it (an elongation beyond any sphere's), as two spheres, else three:
@@ -353,7 +358,7 @@ def on_top(a: np.ndarray, m, radii, mu1, blur: float, noise: float, kappa: float
     (a matched filter on the residual finds no second peak where two are
     0.2-0.5 of a diameter apart), with the markers ``pressed`` against it
     fitted again with them. The parts (Blobs flagged overlap, σ from the
-    joint fit, correlated noise and ``_TWO_MODEL`` of the radius counted;
+    joint fit, correlated noise (``kappa``: its factor by a part's radius, px) and ``_TWO_MODEL`` of the radius counted;
     ``m``'s first, then the pressed ones'), or None unless the parts leave
     ``_ONE_MISFIT`` times less misfit on their discs (:func:`disc_misfit`)
     than ``m`` fitted as one sphere, and no more than ``ADEQUATE`` or than
@@ -434,7 +439,7 @@ def _on_top_parts(a, was: list, fit, chi2_one, on_one: float, radii, mu1: float,
     misfit = max(on / max(off if np.isfinite(off) else 0.0, 1.0), 1.0)
     parts = []
     for (x, y, R, mu), s, d, w in zip(sph, sig, dense, was):
-        sigma = float(np.hypot(joint_sigma(s, kappa), _TWO_MODEL * R * np.sqrt(misfit)))
+        sigma = float(np.hypot(joint_sigma(s, kappa(R)), _TWO_MODEL * R * np.sqrt(misfit)))
         # (a part denser than any one sphere may hold a second nearly on top:
         # under an intensifier's clipped core two balls 1.7 px apart read 1.42x,
         # one centre 0.6-1.1 px from each at σ 0.14)

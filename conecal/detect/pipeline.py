@@ -17,7 +17,7 @@ from .crowded import detect_frame
 from .frame import NonFiniteFrame
 from .options import DetectOptions
 from .gain import MIN_ALONE, linearised, response_lambda, with_background, with_gain_sigma
-from .noise import noise_correlation, noise_pixel, noise_small
+from .noise import noise_autocorrelation, noise_correlation, noise_pixel, noise_small
 from .peaks import small_frame
 from .size import MIN_SHADOWS, measured_size
 from .track import track
@@ -182,7 +182,7 @@ def _noise_of(mid: np.ndarray, opt: DetectOptions) -> DetectOptions:
     ``opt.max_attenuation``), the noise's correlation factor and the
     neighbour-difference noise at ``opt.factor`` (attenuation units)."""
     return replace(opt, pixel_noise=noise_pixel(mid, limit=opt.max_attenuation), noise_kappa=noise_correlation(mid),
-                   noise_reference=noise_small(small_frame(mid, opt)) * opt.factor)
+                   noise_rho=noise_autocorrelation(mid), noise_reference=noise_small(small_frame(mid, opt)) * opt.factor)
 
 
 def _response(scan: Scan, frames_idx: list[int], mid: np.ndarray, opt: DetectOptions, seen: dict) -> float:
