@@ -15,6 +15,7 @@ import cv2
 import numpy as np
 
 from ..stats import spread_sigma
+from .kernels import chord_patch
 
 
 def noise_small(img: np.ndarray) -> float:
@@ -152,8 +153,6 @@ def _weights_factor(rho: tuple, kind: str, radius: float, blur: float) -> float:
     """sum_d rho(d) A_w(d) / A_w(0) for the x weights ``w`` of a shadow of
     ``radius`` px: ``model``, a sphere fit's (d/dx of the disc's blurred chord
     profile), or ``centroid``, (x - c) over a window of that radius."""
-    from .kernels import chord_patch
-
     r = np.asarray(rho)
     L = r.shape[0] // 2
     n = 2 * int(np.ceil(radius + 3 * blur + L)) + 1
@@ -181,7 +180,7 @@ def weights_kappa(kappa: float, rho: tuple, kind: str, radius: float, blur: floa
     change sign across it: noise correlated over more than a shadow's
     radius moves both less than kappa, measured on block means, says (an
     independent JPEG C-arm scan, kappa 24-28, spheres of 2-3 px radius:
-    4.3-9.5 for a model fit). The factor is never above kappa: at wide
+    3.7-7.1 for a model fit). The factor is never above kappa: at wide
     weights the high-pass's negative lobes in rho read it high."""
     if not rho or not np.isfinite(radius) or radius <= 0:
         return kappa

@@ -7,6 +7,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from .noise import weights_kappa
+
 
 @dataclass(frozen=True)
 class DetectOptions:
@@ -72,8 +74,6 @@ class DetectOptions:
         """``noise_kappa`` as it applies to a centre measured by ``kind``
         (``model`` fit of a shadow of ``radius`` px, or ``centroid`` over a
         window of that radius): :func:`conecal.detect.noise.weights_kappa`."""
-        from .noise import weights_kappa
-
         return weights_kappa(self.noise_kappa, self.noise_rho, kind, radius, self.blur_px)
 
     @property
