@@ -24,6 +24,25 @@ def noise_small(img: np.ndarray) -> float:
     return spread_sigma(img[::4, 1::4] - img[::4, :-1:4]) / np.sqrt(2.0) + 1e-7
 
 
+def _centre(img: np.ndarray) -> np.ndarray:
+    """The frame as float32, its central 512 px square when larger (enough
+    for the noise's statistics, and fast)."""
+    a = np.ascontiguousarray(img, dtype=np.float32)
+    if min(a.shape) > 512:
+        r0, c0 = (a.shape[0] - 512) // 2, (a.shape[1] - 512) // 2
+        a = a[r0:r0 + 512, c0:c0 + 512]
+    return a
+
+
+def _busy(d: np.ndarray, size: int) -> np.ndarray:
+    """Where the high-passed frame ``d`` holds structure: its 5 px mean beyond
+    4 robust sigmas of the median, and ``size`` px around that (a shadow and
+    the halo the high-pass leaves around it)."""
+    sm = cv2.blur(d, (5, 5))
+    busy = np.abs(sm - np.median(sm)) > 4 * spread_sigma(sm)
+    return cv2.dilate(busy.astype(np.uint8), np.ones((size, size), np.uint8)) > 0
+
+
 def _block_ratio(d: np.ndarray, block: int, size: int) -> tuple[float, int]:
     """block**2 var(second differences of neighbouring block means of d) /
     var(d) over blocks free of structure (robustly, by MADs), and how many
@@ -32,9 +51,7 @@ def _block_ratio(d: np.ndarray, block: int, size: int) -> tuple[float, int]:
     background (a holder's curvature) the high-pass leaves."""
     h, w = (d.shape[0] // block) * block, (d.shape[1] // block) * block
     d = d[:h, :w]
-    sm = cv2.blur(d, (5, 5))
-    busy = np.abs(sm - np.median(sm)) > 4 * spread_sigma(sm)
-    busy = cv2.dilate(busy.astype(np.uint8), np.ones((size, size), np.uint8)) > 0
+    busy = _busy(d, size)
     blocks = d.reshape(h // block, block, w // block, block)
     ok = ~busy.reshape(h // block, block, w // block, block).any(axis=(1, 3))
     m = blocks.mean(axis=(1, 3))
@@ -71,10 +88,7 @@ def noise_correlation(img: np.ndarray, blocks: tuple[int, ...] = (6, 10, 12), si
     below 1: anti-correlated noise (JPEG's block quantisation) does not make a
     centroid better than white noise would, and 1 is returned when fewer than
     50 blocks are free of structure."""
-    a = np.ascontiguousarray(img, dtype=np.float32)
-    if min(a.shape) > 512:          # the centre is enough, and keeps it fast
-        r0, c0 = (a.shape[0] - 512) // 2, (a.shape[1] - 512) // 2
-        a = a[r0:r0 + 512, c0:c0 + 512]
+    a = _centre(img)
     if not np.isfinite(a).all():
         return 1.0
     hp = a - cv2.blur(a, (size, size), borderType=cv2.BORDER_REPLICATE)
@@ -124,16 +138,11 @@ def noise_autocorrelation(img: np.ndarray, lags: int = AUTOCORRELATION_LAGS, siz
     a tenth) or it is not finite. (A 31 px high-pass puts negative lobes
     in rho at 8-12 px that read a small shadow's factor 10-30 % high on
     noise blurred by 2-3 px; at 61 px, 5-14 %.)"""
-    a = np.ascontiguousarray(img, dtype=np.float32)
-    if min(a.shape) > 512:
-        r0, c0 = (a.shape[0] - 512) // 2, (a.shape[1] - 512) // 2
-        a = a[r0:r0 + 512, c0:c0 + 512]
+    a = _centre(img)
     if not np.isfinite(a).all() or min(a.shape) < 4 * lags:
         return ()
     hp = a - cv2.blur(a, (size, size), borderType=cv2.BORDER_REPLICATE)
-    sm = cv2.blur(hp, (5, 5))
-    busy = (np.abs(sm - np.median(sm)) > 4 * spread_sigma(sm)).astype(np.uint8)
-    keep = (cv2.dilate(busy, np.ones((31, 31), np.uint8)) == 0).astype(np.float64)
+    keep = (~_busy(hp, 31)).astype(np.float64)
     if keep.mean() < 0.1:
         return ()
     x = np.where(keep > 0, hp, 0.0).astype(np.float64)

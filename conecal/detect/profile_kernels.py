@@ -91,7 +91,6 @@ def profile_fit(dx, dy, phi, kappa, s_lo, knot, k, w2, extra, target, reg2):
     L0 = np.empty(k)
     L1 = np.zeros(k)
     L2 = np.zeros(k)
-    fail = (np.zeros(k + m), np.inf, np.zeros(n))
     for i in range(k):
         if i >= 2:
             L2[i] = reg2 / L0[i - 2]
@@ -100,7 +99,7 @@ def profile_fit(dx, dy, phi, kappa, s_lo, knot, k, w2, extra, target, reg2):
             L1[i] = (a1 - (L2[i] * L1[i - 1] if i >= 2 else 0.0)) / L0[i - 1]
         q = b0[i] + d[i] + eps - L1[i] * L1[i] - L2[i] * L2[i]
         if not q > 0.0:
-            return fail
+            return np.zeros(k + m), np.inf, np.zeros(n)
         L0[i] = np.sqrt(q)
     Z = np.empty((k, m + 1))
     for j in range(m + 1):
@@ -129,7 +128,7 @@ def profile_fit(dx, dy, phi, kappa, s_lo, knot, k, w2, extra, target, reg2):
     for c in range(m):
         piv = c + np.argmax(np.abs(S[c:, c]))
         if not abs(S[piv, c]) > 0.0:
-            return fail
+            return np.zeros(k + m), np.inf, np.zeros(n)
         if piv != c:
             for l in range(m):
                 S[c, l], S[piv, l] = S[piv, l], S[c, l]
