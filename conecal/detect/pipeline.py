@@ -372,7 +372,10 @@ def assemble(scan: Scan, opt: DetectOptions, frames_idx: list[int], results: lis
                         "pixel_noise": round(opt.pixel_noise, 8), "noise_kappa": round(opt.noise_kappa, 4),
                         "noise_reference": round(opt.noise_reference, 8),
                         "max_anisotropy": opt.max_anisotropy, "min_relative_contrast": opt.min_relative_contrast,
-                        "size_scale": round(opt.size_scale, 4), "response_lambda": opt.response_lambda or 0.0},
+                        "size_scale": round(opt.size_scale, 4), "response_lambda": opt.response_lambda or 0.0,
+                        # (the noise's autocorrelation that scales each centre's sigma with its
+                        # estimator's weights: with it a sigma can be recomputed from this file)
+                        "noise_autocorrelation": [[round(v, 4) for v in row] for row in opt.noise_rho]},
             "reference_mu_px": round(ref, 6), "contrast_gain": gain.document(),
             "identities": "phantom ids are assigned by fit-pose" if robot else "tracked across frames",
             "n_ids": 0 if robot else len(spans), "frames": frames}
