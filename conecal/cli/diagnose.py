@@ -47,8 +47,10 @@ def command(result, scan, output, alpha, image_level, image_frames, markers, all
 
     On a free-pose result (fit-pose on a motion: free scan, which already
     chose the detector distortion on held-out markers) what the chosen model
-    still misses is located: a field over the detector, a sphere off its
-    CAD position, frames above the others.
+    still misses is located: a place on the detector whose markers are
+    displaced from those around it (a dent in an intensifier's screen; the
+    markers fit-pose set aside are judged too), a field over the detector, a
+    sphere off its CAD position, frames above the others.
 
     On a fit-pose result the observations are the holder's poses against
     the arm's model (joint log through the DH table, registration refitted):

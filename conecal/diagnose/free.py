@@ -11,7 +11,14 @@ markers against the result's own prediction (camera, distortion, poses):
   the phantom is not where its CAD file says (a sphere off by a fraction
   of a mm);
 - frames whose residual exceeds the others' (a sagging C-arm, a frame with
-  a wrong sphere, motion during the exposure).
+  a wrong sphere, motion during the exposure);
+- a place on the detector whose markers are displaced from those around it
+  (``local_field``: a dent in an intensifier's screen). fit-pose sets such
+  markers aside as outliers, so the detections it left out of an ok frame
+  are paired again here with the sphere predicted nearest, where that is
+  unambiguous, and judged with the others. A place found is reported first;
+  its markers then stay out of the other tests (a dent's markers otherwise
+  read as a sphere off its CAD position or as frames above the others).
 
 Residuals are whitened by detect's sigma scaled up to the fit's own
 scatter when detect's sigma is too small (as on real images). Nothing is
@@ -29,6 +36,7 @@ from scipy.stats import chi2 as chi2_dist
 from ..calib.camera import Camera
 from ..geometry.distortion import Distortion
 from ..geometry.sphere import shadow_bias
+from .local_field import local_displacements
 from .locate import describe, detector_field
 
 
@@ -64,6 +72,30 @@ def _prediction(doc, frame, P, radius):
     return (Distortion.from_dict(dd).distort(q) if dd else q), cam
 
 
+# a detection left out of an ok frame is paired with the sphere predicted
+# nearest when the next prediction is this many times as far: 4 px of a
+# 20 px grid pitch, far beyond the noise, well short of a neighbour
+_UNAMBIGUOUS = 5.0
+
+
+def _set_aside(ms: list, used: set, used_ids: set, pred: np.ndarray, ids: list) -> list:
+    """The detections ``ms`` an ok frame left out (not in ``used``, not
+    truncated), each as (detection index, sphere id) with the sphere (not
+    in ``used_ids``) whose prediction ``pred`` (S, 2) px is nearest,
+    where the second nearest is ``_UNAMBIGUOUS`` times as far; a sphere
+    two detections claim is left out."""
+    pairs = {}
+    for i, m in enumerate(ms):
+        if i in used or "truncated" in (m.get("flags") or []):
+            continue
+        d = np.hypot(pred[:, 0] - m["x"], pred[:, 1] - m["y"])
+        j, k = np.argsort(d)[:2]
+        if ids[j] in used_ids or d[k] < _UNAMBIGUOUS * d[j]:
+            continue
+        pairs.setdefault(ids[j], []).append(i)
+    return [(v[0], s) for s, v in pairs.items() if len(v) == 1]
+
+
 def diagnose_free(doc: dict, scan, markers: dict, alpha: float = 0.01) -> dict:
     pos = dict(zip(scan.phantom.ids.tolist(), scan.phantom.positions))
     # a result that refined the phantom is judged with the spheres where it put them
@@ -71,32 +103,46 @@ def diagnose_free(doc: dict, scan, markers: dict, alpha: float = 0.01) -> dict:
         pos[sph["id"]] = pos[sph["id"]] + np.asarray(sph["offset_mm"])
     radius = scan.config.markers.diameter / 2
     by_frame = {int(f["frame"]): f["markers"] for f in markers["frames"]}
-    xy, sig, res, fid, sid, Rs = [], [], [], [], [], []
+    xy, sig, res, fid, sid, Rs, aside = [], [], [], [], [], [], []
     cam = None
+    ids_all = scan.phantom.ids.tolist()
     for f in doc["frames"]:
         if f["status"] != "ok" or not f.get("matched"):
             continue
         ms = by_frame.get(int(f["frame"]), [])
-        idx = [i for i, _ in f["matched"]]
-        ids = [s for _, s in f["matched"]]
-        m = np.array([[ms[i]["x"], ms[i]["y"]] for i in idx])
-        pred, cam = _prediction(doc, f, np.array([pos[s] for s in ids]), radius)
-        xy.append(m)
-        sig.append([ms[i].get("sigma") or 0.05 for i in idx])
-        res.append(m - pred)
-        fid += [int(f["frame"])] * len(idx)
-        sid += ids
-        Rs += [np.asarray(f["R"])] * len(idx)
+        pred_all, cam = _prediction(doc, f, np.array([pos[s] for s in ids_all]), radius)
+        at = dict(zip(ids_all, pred_all))
+        pairs = list(f["matched"])
+        extra = _set_aside(ms, {i for i, _ in pairs}, {s for _, s in pairs}, pred_all, ids_all)
+        for i, s in pairs + extra:
+            xy.append([ms[i]["x"], ms[i]["y"]])
+            sig.append(ms[i].get("sigma") or 0.05)
+            res.append(np.array(xy[-1]) - at[s])
+            fid.append(int(f["frame"]))
+            sid.append(s)
+            Rs.append(np.asarray(f["R"]))
+        aside += [False] * len(pairs) + [True] * len(extra)
     if not xy:
         return {"verdict": "nothing to diagnose: no frame is ok", "located": [], "claims": []}
-    xy, res = np.vstack(xy), np.vstack(res)
-    sig = np.concatenate(sig).astype(float)
-    fid, sid, Rs = np.array(fid), np.array(sid), np.array(Rs)
+    xy, res = np.array(xy, float), np.array(res, float)
+    sig = np.array(sig, float)
+    fid, sid, Rs, aside = np.array(fid), np.array(sid), np.array(Rs), np.array(aside)
+    used = ~aside
     n_par = 3 + 6 * len(np.unique(fid))
-    chi2_red = float(np.sum((res / sig[:, None]) ** 2) / max(1, res.size - n_par))
+    chi2_red = float(np.sum((res[used] / sig[used, None]) ** 2) / max(1, 2 * used.sum() - n_par))
     scale = float(np.sqrt(max(1.0, chi2_red)))
     s_eff = sig * scale
+    rms = float(np.sqrt(np.mean(np.sum(res[used] ** 2, 1))))
+    n_markers, n_frames = int(used.sum()), int(len(np.unique(fid[used])))
     located, tests = [], []
+    places, inside, n_places = local_displacements(xy, res, s_eff, fid, tuple(doc["detector"]["shape"]), alpha,
+                                                   fit=used)
+    located += places
+    tests.append({"variable": "detector position (local)", "tested": n_places, "significant": len(places),
+                  "set_aside_paired": int(aside.sum())})
+    # the remaining tests on the markers the fit used, outside any place found
+    keep = used & ~inside
+    xy, res, sig, s_eff, fid, sid, Rs = (v[keep] for v in (xy, res, sig, s_eff, fid, sid, Rs))
     field = detector_field(_FreeView(xy, s_eff, res, cam.geometry()), None, None, alpha)
     if field:
         located.append(field)
@@ -134,13 +180,12 @@ def diagnose_free(doc: dict, scan, markers: dict, alpha: float = 0.01) -> dict:
                         "shape": f"{len(bad_f)} frame(s) above the others (worst: frame {worst[0]})",
                         "size": worst[2], "size_px": worst[2], "p_adjusted": worst[1], "also_follows": [],
                         "frames": [k for k, _, _ in bad_f]})
-    rms = float(np.sqrt(np.mean(np.sum(res ** 2, 1))))
     verdict = ("no structure beyond the noise floor" if not located else
                "located, not named: " + "; ".join(describe(loc) for loc in located))
     located = [dict(loc, level="geometry", description=describe(loc)) for loc in located]
     return {"verdict": verdict, "located": located, "tests": tests, "claims": [],
             "rms_px": rms, "chi2_reduced": chi2_red, "sigma_scale": scale,
-            "n_markers": int(len(res)), "n_frames": int(len(np.unique(fid))),
+            "n_markers": n_markers, "n_frames": n_frames,
             "note": ("free-pose result: fit-pose already chose the detector distortion on held-out markers "
                      f"({(doc.get('distortion') or {}).get('family', 'none')}); diagnose locates what the chosen "
                      "model still misses; the image level is not run on free-pose results yet")}

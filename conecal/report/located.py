@@ -50,7 +50,8 @@ def located_figure(doc) -> bytes | None:
     items = doc.get("located") or []
     curves = [loc for loc in items if loc.get("series")][:MAX_PANELS]
     field = next((loc["field"] for loc in items if loc.get("field")), None)
-    n = len(curves) + (field is not None)
+    places = [loc for loc in items if loc.get("centre_px")]
+    n = len(curves) + (field is not None or bool(places))
     if n == 0:
         return None
     plt = _plt()
@@ -84,4 +85,32 @@ def located_figure(doc) -> bytes | None:
         ax.set_xlabel("detector column (px)")
         ax.set_ylabel("detector row (px)")
         ax.set_title(f"field, max {mag.max():.3f} px", fontsize=8, loc="left")
+    if places:
+        _draw_places(axes[n - 1], places, field is None)
     return _png(fig)
+
+
+def _draw_places(ax, places: list, alone: bool) -> None:
+    """Each local place (``diagnose.local_field``): its extent as a circle
+    and its displacement from around it as an arrow, labelled in px."""
+    from matplotlib.patches import Circle
+
+    for p in places:
+        (c, r), rad = p["centre_px"], p["radius_px"]
+        d = np.asarray(p["displacement_px"], float)
+        ax.add_patch(Circle((c, r), rad, fill=False, color="tab:red", lw=1.2))
+        # (drawn at the place's radius per px of displacement: the direction is what reads)
+        k = 0.8 * rad / max(float(np.hypot(*d)), 1e-12)
+        ax.annotate("", (c + k * d[0], r + k * d[1]), (c, r), arrowprops={"arrowstyle": "->", "color": "tab:red"})
+        ax.text(c + rad, r - rad, f"{np.hypot(*d):.2f} px", color="tab:red", fontsize=7)
+    if alone:
+        xs = [p["centre_px"][0] for p in places]
+        ys = [p["centre_px"][1] for p in places]
+        pad = 3 * max(p["radius_px"] for p in places)
+        ax.set_xlim(min(xs) - pad, max(xs) + pad)
+        ax.set_ylim(max(ys) + pad, min(ys) - pad)
+        ax.set_aspect("equal")
+        ax.set_xlabel("detector column (px)")
+        ax.set_ylabel("detector row (px)")
+    title = "" if alone else ax.get_title(loc="left") + "; "
+    ax.set_title(title + "red: places displaced from around them", fontsize=7, loc="left")
