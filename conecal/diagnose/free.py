@@ -135,8 +135,7 @@ def diagnose_free(doc: dict, scan, markers: dict, alpha: float = 0.01) -> dict:
     rms = float(np.sqrt(np.mean(np.sum(res[used] ** 2, 1))))
     n_markers, n_frames = int(used.sum()), int(len(np.unique(fid[used])))
     located, tests = [], []
-    places, inside, n_places = local_displacements(xy, res, s_eff, fid, tuple(doc["detector"]["shape"]), alpha,
-                                                   fit=used)
+    places, inside, n_places = local_displacements(xy, res, s_eff, fid, tuple(doc["detector"]["shape"]), alpha)
     located += places
     tests.append({"variable": "detector position (local)", "tested": n_places, "significant": len(places),
                   "set_aside_paired": int(aside.sum())})

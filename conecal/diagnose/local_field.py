@@ -5,20 +5,20 @@ moves every centre near it.
 The polynomial field (``locate.detector_field``) holds what varies smoothly
 over the whole detector; a bump a few marker spacings wide is spread thin by
 it and its markers are the ones a fit sets aside. Here the residuals
-(measured - predicted, px), with their smooth field (a cubic polynomial
-over the detector, the polynomial field's to report) taken out, are
-compared near a point with those around it: for each centre of a grid of
-spacing ``h`` (three scales), the Gaussian (``h``) weighted mean residual
-within 2.5 h minus the weighted plane fitted to the ring 2 h-4 h, at the
-inner mean's centroid. Under pure noise the difference over its standard
-error is chi-square with 2 degrees of freedom; the p-value is
-Bonferroni-adjusted over every (centre, scale) tested. The standard error
-is the larger of the stated σ's and the residuals' own scatter, clustered
-by frame (a frame's markers share its pose's error: the frames are the
-independent draws), so a bad centre, or one frame's, among good ones does
-not make a place. A place must also be seen in three frames or more and
-stay significant with any one of its frames left out (one frame's wrong
-sphere, inside or in the ring, is a frame's fault, not the detector's).
+(measured - predicted, px) near a point are compared with those around
+it: for each centre of a grid of spacing ``h`` (three scales), the
+Gaussian (``h``) weighted mean residual within 2.5 h minus the weighted
+plane fitted to the ring 2 h-4 h, at the inner mean's centroid. Under pure noise the squared difference over its
+variance (from the stated σ) is chi-square with 2 degrees of freedom, once
+divided by that scale's inflation: the median over every centre tried
+over the null's median (2 ln 2), at least 1. σ stated too small, or errors
+shared by a frame's markers, raise every centre alike; a place raises
+only its own. The p-value is Bonferroni-adjusted over every (centre,
+scale) tested; among the significant, the largest displacement is the
+place (the scale at which a bump stands out most from its ring). A place
+must also be seen in three frames or more and stay significant with any
+one of its frames left out (one frame's wrong sphere, inside or in the
+ring, is a frame's fault, not the detector's).
 
 Units: px (column, row) on the detector; residuals in px.
 """
@@ -31,10 +31,8 @@ from scipy.stats import chi2
 
 # scales h as fractions of the detector's larger side (768 px: 10, 19, 38 px);
 # at 1/10 (a ring 0.4 of the side across) a smooth field's curvature read as
-# places before the smooth part was taken out; wider than 1/20 is the field's
+# places (a mean for the ring, no inflation); wider than 1/20 is the field's
 SCALES = (1 / 80, 1 / 40, 1 / 20)
-# the smooth field taken out first: what the polynomial field holds is not a place
-SMOOTH_DEGREE = 3
 # a place's markers: its Gaussian's weight at least this (2.5 h)
 _INNER = 2.5
 # the ring it is compared with (in h)
@@ -44,50 +42,29 @@ MIN_MARKERS = 5
 MIN_FRAMES = 3
 
 
-def _sandwich(Kw, lever, e, fr, n_frames):
-    """Variance (c, 2) of a weighted estimate from the residuals' own
-    scatter ``e`` (c, n, 2) about it, clustered by frame ``fr`` (c, n)
-    (labels 0..n_frames-1; n_frames: no marker): ``Kw`` (c, n) kernel times
-    weights, ``lever`` (c, n) each marker's share per unit of Kw. A frame's
-    markers share its pose's error, so the frames, not the markers, are the
-    independent draws: each frame's summed contribution counts once, times
-    G / (G - 1) for G frames."""
-    c = len(Kw)
-    z = (Kw * lever)[..., None] * e
-    key = (np.arange(c)[:, None] * (n_frames + 1) + fr).ravel()
-    sums = np.stack([np.bincount(key, weights=z[..., k].ravel(), minlength=c * (n_frames + 1))
-                     for k in range(2)], -1).reshape(c, n_frames + 1, 2)[:, :n_frames]
-    G = (np.bincount(key, weights=(Kw > 0).ravel().astype(float), minlength=c * (n_frames + 1))
-         .reshape(c, n_frames + 1)[:, :n_frames] > 0).sum(1)
-    return (sums ** 2).sum(1) * (G / np.maximum(G - 1, 1))[:, None]
-
-
 def _n_eff(W):
     return W.sum(1) ** 2 / np.maximum((W * W).sum(1), 1e-300)
 
 
-def _inner(W, xy, r, w, fr, n_frames):
+def _inner(W, xy, r, w):
     """The Gaussian side, over each centre's markers (``xy`` (c, n, 2) px,
     ``r`` (c, n, 2), ``w`` (c, n), kernel ``W`` (c, n)): weighted means
-    (c, 2), the weighted centroid they hold at (c, 2) px, variance per
-    component (c, 2) (the larger of the stated and the sandwich) and the
-    effective count (c,)."""
+    (c, 2), the weighted centroid they hold at (c, 2) px, their variance
+    from the stated σ (c,) and the effective count (c,)."""
     Kw = W * w
     s1 = Kw.sum(1)
     s1 = np.where(s1 > 0, s1, 1.0)    # (no marker: invalid, n_eff 0)
     m = np.einsum("cn,cnk->ck", Kw, r) / s1[:, None]
     at = np.einsum("cn,cnk->ck", Kw, xy) / s1[:, None]
     n_eff = _n_eff(W)
-    stated = (W * W * w).sum(1) / s1 ** 2
-    sand = _sandwich(Kw, 1.0 / s1[:, None], r - m[:, None], fr, n_frames)
-    return m, at, np.maximum(stated[:, None], sand), n_eff
+    return m, at, (W * W * w).sum(1) / s1 ** 2, n_eff
 
 
-def _ring(W, xy, r, w, at, fr, n_frames):
+def _ring(W, xy, r, w, at):
     """The ring's weighted plane (per component) evaluated at ``at`` (c, 2)
-    px (arrays as ``_inner``'s): value (c, 2), variance (c, 2) (stated or
-    sandwich, the larger), the effective count (c,) and whether the plane is
-    determined (c,). A plane, not a mean: at the detector's edge the ring
+    px (arrays as ``_inner``'s): value (c, 2), its variance from the stated
+    σ (c,), the effective count (c,) and whether the plane is determined
+    (c,). A plane, not a mean: at the detector's edge the ring
     lies on one side, where a smooth field's slope would read as a place."""
     Kw = W * w
     U = np.concatenate([np.ones(W.shape + (1,)), xy - at[:, None]], -1)             # (c, n, 3)
@@ -96,16 +73,13 @@ def _ring(W, xy, r, w, at, fr, n_frames):
     M[~good] = np.eye(3)
     Minv = np.linalg.inv(M)
     coef = np.einsum("cij,cnj,cn,cnk->cik", Minv, U, Kw, r)                          # (c, 3, 2)
-    lever = np.einsum("cni,ci->cn", U, Minv[:, 0, :])
-    e = r - np.einsum("cni,cik->cnk", U, coef)
-    n_eff = _n_eff(W)
-    sand = _sandwich(Kw, lever, e, fr, n_frames)
-    return coef[:, 0, :], np.maximum(Minv[:, 0, 0][:, None], sand), n_eff, good
+    return coef[:, 0, :], Minv[:, 0, 0], _n_eff(W), good
 
 
 def _place_tests(xy, r, w, frame, centres, h, chunk: int = 256):
-    """For each centre (C, 2): chi-square (2 dof) of the inner mean minus
-    the ring's plane there, the difference (C, 2) and validity (C,). Each
+    """For each centre (C, 2): chi-square (2 dof, from the stated σ) of the
+    inner mean minus the ring's plane there, the difference (C, 2) and
+    validity (C,). Each
     centre sees only its markers within the ring (a k-d tree's lists,
     padded with a weightless marker far away)."""
     n = len(xy)
@@ -126,11 +100,11 @@ def _place_tests(xy, r, w, frame, centres, h, chunk: int = 256):
         inner = np.exp(-d2 / (2 * h * h)) * (d2 <= (_INNER * h) ** 2) * (Wt > 0)
         ring = ((d2 >= (_RING[0] * h) ** 2) & (d2 < (_RING[1] * h) ** 2) & (Wt > 0)).astype(float)
         F = f_p[idx]
-        mi, at, vi, ni = _inner(inner, X, Rr, Wt, F, len(frames))
-        mr, vr, nr, good = _ring(ring, X, Rr, Wt, at, F, len(frames))
+        mi, at, vi, ni = _inner(inner, X, Rr, Wt)
+        mr, vr, nr, good = _ring(ring, X, Rr, Wt, at)
         diff = mi - mr
         with np.errstate(invalid="ignore", divide="ignore"):
-            c2 = (diff ** 2 / (vi + vr)).sum(1)
+            c2 = (diff ** 2).sum(1) / (vi + vr)
         seen = np.where(inner > np.exp(-0.5 * 1.5 ** 2), F, len(frames))
         frames_in = np.array([len(set(row.tolist()) - {len(frames)}) for row in seen])
         valid = (ni >= MIN_MARKERS) & (nr >= MIN_MARKERS) & (frames_in >= MIN_FRAMES) & good & np.isfinite(c2)
@@ -153,38 +127,15 @@ def _without_any_frame(xy, r, w, frame, centre, h):
     return worst
 
 
-def smooth_part(xy, r, w, shape, fit=None) -> np.ndarray:
-    """The residuals' smooth field over the detector (N, 2) px: a weighted
-    2-D polynomial of total degree ``SMOOTH_DEGREE`` in the detector
-    position, per component, fitted on the markers ``fit`` (N,) bool (all
-    by default), evaluated at every marker."""
-    rows, cols = shape
-    half = np.array([(cols - 1) / 2, (rows - 1) / 2])
-    z = (xy - half) / half
-    B = np.column_stack([z[:, 0] ** i * z[:, 1] ** j for i in range(SMOOTH_DEGREE + 1)
-                         for j in range(SMOOTH_DEGREE + 1 - i)])
-    sel = np.ones(len(r), bool) if fit is None else np.asarray(fit, bool)
-    if sel.sum() <= 2 * B.shape[1]:
-        return np.zeros_like(r)
-    sw = np.sqrt(w[sel])[:, None]
-    coef, *_ = np.linalg.lstsq(B[sel] * sw, r[sel] * sw, rcond=None)
-    return B @ coef
-
-
-def local_displacements(xy, residual, sigma, frame, shape, alpha: float = 0.01, max_places: int = 3,
-                        fit=None) -> tuple:
+def local_displacements(xy, residual, sigma, frame, shape, alpha: float = 0.01, max_places: int = 3) -> tuple:
     """Places on the detector whose markers are displaced from those around
-    them, beyond the residuals' smooth field (``smooth_part``, fitted on the
-    markers ``fit``: those a fit kept; all by default). ``xy`` (N, 2)
-    measured centres px, ``residual`` (N, 2) px, ``sigma`` (N,) px (each
-    marker's, scaled to the fit's scatter), ``frame`` (N,), ``shape`` (rows,
-    cols). Returns (located entries, markers within any place's ring (N,)
-    bool, tests: how many places were tried)."""
+    them. ``xy`` (N, 2) measured centres px, ``residual`` (N, 2) px,
+    ``sigma`` (N,) px (each marker's, scaled to the fit's scatter), ``frame``
+    (N,), ``shape`` (rows, cols). Returns (located entries, markers within
+    any place's ring (N,) bool, tests: how many places were tried)."""
     xy, r = np.asarray(xy, float), np.asarray(residual, float)
     w = 1.0 / np.asarray(sigma, float) ** 2
     frame = np.asarray(frame)
-    fit = np.ones(len(r), bool) if fit is None else np.asarray(fit, bool)
-    raw = r
     rows, cols = shape
     side = float(max(rows, cols))
     grids = []
@@ -194,36 +145,43 @@ def local_displacements(xy, residual, sigma, frame, shape, alpha: float = 0.01, 
         gv = np.arange(h / 2, rows, h)
         grids.append((h, np.stack(np.meshgrid(gu, gv), -1).reshape(-1, 2)))
     inside = np.zeros(len(r), bool)
-    found, n_tests = [], None
+    found, n_tests, inflation = [], None, {}
     for _ in range(max_places):
-        # (the smooth field refitted without the places found: it would bend
-        # to a dent and leave its ripple elsewhere)
-        r = raw - smooth_part(xy, raw, w, shape, fit & ~inside)
         cands = []
         tested = 0
         for h, centres in grids:
             # (markers in a place already found are out of the next search)
             c2, diff, valid = _place_tests(xy[~inside], r[~inside], w[~inside], frame[~inside], centres, h)
             tested += int(valid.sum())
-            cands += [(float(c2[i]), h, centres[i], diff[i]) for i in np.flatnonzero(valid)]
+            if h not in inflation and valid.any():
+                # the first search's median chi-square over the null's (2 ln 2):
+                # sigma stated too small, or shared within frames, raise every
+                # place alike, a place raises only its own
+                inflation[h] = max(1.0, float(np.median(c2[valid])) / (2 * np.log(2)))
+            lam = inflation.get(h, 1.0)
+            cands += [(float(chi2.sf(c2[i] / lam, 2)), h, centres[i], diff[i], lam) for i in np.flatnonzero(valid)]
         if n_tests is None:
             n_tests = tested    # the first search's count adjusts every p-value
         if not cands:
             break
         place = None
-        for c2, h, centre, diff in sorted(cands, key=lambda t: -t[0]):
-            p = min(1.0, n_tests * float(chi2.sf(c2, 2)))
+        # among the significant, the largest displacement: the scale at which
+        # a bump stands out most from its ring (a finer one's ring is still on
+        # the bump's flank; the smallest p-value went to the finest scale and
+        # split one dent into two places)
+        for p1, h, centre, diff, lam in sorted(cands, key=lambda t: -np.hypot(*t[3])):
+            p = min(1.0, n_tests * p1)
             if p >= alpha:
-                break
+                continue
             if any(np.hypot(*(centre - f["centre_px"])) < f["radius_px"] + _INNER * h for f in found):
                 continue   # the tail of a place already found, seen at another scale
             rest = _without_any_frame(xy[~inside], r[~inside], w[~inside], frame[~inside], centre, h)
-            if min(1.0, n_tests * float(chi2.sf(rest, 2))) < alpha:
-                place = (c2, h, centre, diff, p)
+            if min(1.0, n_tests * float(chi2.sf(rest / lam, 2))) < alpha:
+                place = (h, centre, diff, p)
                 break
         if place is None:
             break
-        c2, h, centre, diff, p = place
+        h, centre, diff, p = place
         d2 = ((xy - centre) ** 2).sum(-1)
         members = (d2 <= (_INNER * h) ** 2) & ~inside
         size = float(np.hypot(*diff))
@@ -232,7 +190,7 @@ def local_displacements(xy, residual, sigma, frame, shape, alpha: float = 0.01, 
             "shape": (f"a place {2 * _INNER * h:.0f} px across about ({centre[0]:.0f}, {centre[1]:.0f}) px, "
                       f"displaced ({diff[0]:+.2f}, {diff[1]:+.2f}) px from around it; "
                       f"{int(members.sum())} markers in {len(np.unique(frame[members]))} frames"),
-            "size": size, "size_px": size, "p_adjusted": p, "chi2": c2, "also_follows": [],
+            "size": size, "size_px": size, "p_adjusted": p, "also_follows": [],
             "centre_px": [float(centre[0]), float(centre[1])], "radius_px": float(_INNER * h),
             "displacement_px": [float(diff[0]), float(diff[1])], "n_markers": int(members.sum()),
             "n_frames": int(len(np.unique(frame[members])))})
