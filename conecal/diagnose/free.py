@@ -73,8 +73,9 @@ def _prediction(doc, frame, P, radius):
 
 
 # a detection left out of an ok frame is paired with the sphere predicted
-# nearest when the next prediction is this many times as far: 4 px of a
-# 20 px grid pitch, far beyond the noise, well short of a neighbour
+# nearest when the next prediction is this many times as far: within a sixth
+# of the spheres' spacing (3.3 px of a 20 px pitch), far beyond the noise
+# and well short of a neighbour
 _UNAMBIGUOUS = 5.0
 
 
@@ -85,6 +86,8 @@ def _set_aside(ms: list, used: set, used_ids: set, pred: np.ndarray, ids: list) 
     where the second nearest is ``_UNAMBIGUOUS`` times as far; a sphere
     two detections claim is left out."""
     pairs = {}
+    if len(ids) < 2:
+        return []
     for i, m in enumerate(ms):
         if i in used or "truncated" in (m.get("flags") or []):
             continue
@@ -103,7 +106,7 @@ def diagnose_free(doc: dict, scan, markers: dict, alpha: float = 0.01) -> dict:
         pos[sph["id"]] = pos[sph["id"]] + np.asarray(sph["offset_mm"])
     radius = scan.config.markers.diameter / 2
     by_frame = {int(f["frame"]): f["markers"] for f in markers["frames"]}
-    xy, sig, res, fid, sid, Rs, aside = [], [], [], [], [], [], []
+    xy, sig, res, fid, sid, aside = [], [], [], [], [], []
     cam = None
     ids_all = scan.phantom.ids.tolist()
     for f in doc["frames"]:
@@ -120,13 +123,12 @@ def diagnose_free(doc: dict, scan, markers: dict, alpha: float = 0.01) -> dict:
             res.append(np.array(xy[-1]) - at[s])
             fid.append(int(f["frame"]))
             sid.append(s)
-            Rs.append(np.asarray(f["R"]))
         aside += [False] * len(pairs) + [True] * len(extra)
     if not xy:
         return {"verdict": "nothing to diagnose: no frame is ok", "located": [], "claims": []}
     xy, res = np.array(xy, float), np.array(res, float)
     sig = np.array(sig, float)
-    fid, sid, Rs, aside = np.array(fid), np.array(sid), np.array(Rs), np.array(aside)
+    fid, sid, aside = np.array(fid), np.array(sid), np.array(aside)
     used = ~aside
     n_par = 3 + 6 * len(np.unique(fid))
     chi2_red = float(np.sum((res[used] / sig[used, None]) ** 2) / max(1, 2 * used.sum() - n_par))
@@ -141,7 +143,7 @@ def diagnose_free(doc: dict, scan, markers: dict, alpha: float = 0.01) -> dict:
                   "set_aside_paired": int(aside.sum())})
     # the remaining tests on the markers the fit used, outside any place found
     keep = used & ~inside
-    xy, res, sig, s_eff, fid, sid, Rs = (v[keep] for v in (xy, res, sig, s_eff, fid, sid, Rs))
+    xy, res, sig, s_eff, fid, sid = (v[keep] for v in (xy, res, sig, s_eff, fid, sid))
     field = detector_field(_FreeView(xy, s_eff, res, cam.geometry()), None, None, alpha)
     if field:
         located.append(field)

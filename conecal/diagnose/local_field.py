@@ -43,6 +43,7 @@ MIN_FRAMES = 3
 
 
 def _n_eff(W):
+    """Effective count (c,) of markers under kernel weights ``W`` (c, n)."""
     return W.sum(1) ** 2 / np.maximum((W * W).sum(1), 1e-300)
 
 
@@ -64,8 +65,8 @@ def _ring(W, xy, r, w, at):
     """The ring's weighted plane (per component) evaluated at ``at`` (c, 2)
     px (arrays as ``_inner``'s): value (c, 2), its variance from the stated
     σ (c,), the effective count (c,) and whether the plane is determined
-    (c,). A plane, not a mean: at the detector's edge the ring
-    lies on one side, where a smooth field's slope would read as a place."""
+    (c,). A plane, not a mean: at the detector's edge the ring lies on one
+    side, where a smooth field's slope would read as a place."""
     Kw = W * w
     U = np.concatenate([np.ones(W.shape + (1,)), xy - at[:, None]], -1)             # (c, n, 3)
     M = np.einsum("cn,cni,cnj->cij", Kw, U, U)
@@ -79,9 +80,8 @@ def _ring(W, xy, r, w, at):
 def _place_tests(xy, r, w, frame, centres, h, chunk: int = 256):
     """For each centre (C, 2): chi-square (2 dof, from the stated σ) of the
     inner mean minus the ring's plane there, the difference (C, 2) and
-    validity (C,). Each
-    centre sees only its markers within the ring (a k-d tree's lists,
-    padded with a weightless marker far away)."""
+    validity (C,). Each centre sees only its markers within the ring (a k-d
+    tree's lists, padded with a weightless marker far away)."""
     n = len(xy)
     frames, fidx = np.unique(frame, return_inverse=True)
     xy_p = np.vstack([xy, [[1e6, 1e6]]])
