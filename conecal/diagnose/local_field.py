@@ -27,7 +27,6 @@ from __future__ import annotations
 
 import numpy as np
 from scipy.spatial import cKDTree
-from scipy.stats import chi2
 
 # scales h as fractions of the detector's larger side (768 px: 10, 19, 38 px);
 # at 1/10 (a ring 0.4 of the side across) a smooth field's curvature read as
@@ -40,6 +39,11 @@ _RING = (2.0, 4.0)
 # effective markers inside and in the ring, and distinct frames inside, for a test
 MIN_MARKERS = 5
 MIN_FRAMES = 3
+
+
+def _sf2(x):
+    """The chi-square survival function for 2 degrees of freedom: exp(-x/2)."""
+    return np.exp(-0.5 * np.asarray(x, float))
 
 
 def _n_eff(W):
@@ -67,13 +71,13 @@ def _ring(W, xy, r, w, at):
     σ (c,), the effective count (c,) and whether the plane is determined
     (c,). A plane, not a mean: at the detector's edge the ring lies on one
     side, where a smooth field's slope would read as a place."""
-    Kw = W * w
     U = np.concatenate([np.ones(W.shape + (1,)), xy - at[:, None]], -1)             # (c, n, 3)
-    M = np.einsum("cn,cni,cnj->cij", Kw, U, U)
+    UtK = (U * (W * w)[..., None]).transpose(0, 2, 1)                                 # (c, 3, n)
+    M = UtK @ U
     good = np.linalg.cond(M) < 1e10
     M[~good] = np.eye(3)
     Minv = np.linalg.inv(M)
-    coef = np.einsum("cij,cnj,cn,cnk->cik", Minv, U, Kw, r)                          # (c, 3, 2)
+    coef = Minv @ (UtK @ r)                                                           # (c, 3, 2)
     return coef[:, 0, :], Minv[:, 0, 0], _n_eff(W), good
 
 
@@ -159,7 +163,8 @@ def local_displacements(xy, residual, sigma, frame, shape, alpha: float = 0.01, 
                 # place alike, a place raises only its own
                 inflation[h] = max(1.0, float(np.median(c2[valid])) / (2 * np.log(2)))
             lam = inflation.get(h, 1.0)
-            cands += [(float(chi2.sf(c2[i] / lam, 2)), h, centres[i], diff[i], lam) for i in np.flatnonzero(valid)]
+            p1 = _sf2(c2 / lam)
+            cands += [(float(p1[i]), h, centres[i], diff[i], lam) for i in np.flatnonzero(valid)]
         if n_tests is None:
             n_tests = tested    # the first search's count adjusts every p-value
         if not cands:
@@ -176,7 +181,7 @@ def local_displacements(xy, residual, sigma, frame, shape, alpha: float = 0.01, 
             if any(np.hypot(*(centre - f["centre_px"])) < f["radius_px"] + _INNER * h for f in found):
                 continue   # the tail of a place already found, seen at another scale
             rest = _without_any_frame(xy[~inside], r[~inside], w[~inside], frame[~inside], centre, h)
-            if min(1.0, n_tests * float(chi2.sf(rest / lam, 2))) < alpha:
+            if min(1.0, n_tests * float(_sf2(rest / lam))) < alpha:
                 place = (h, centre, diff, p)
                 break
         if place is None:
