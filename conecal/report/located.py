@@ -79,15 +79,22 @@ def located_figure(doc) -> bytes | None:
         key = float(f"{mag.max():.1g}") if mag.max() > 0 else 1.0
         ax.quiverkey(q, 0.8, 1.05, key, f"{key:g} px", labelpos="E", fontproperties={"size": 7})
         fig.colorbar(q, ax=ax, label="displacement (px)")
-        ax.set_xlim(U.min() - 0.1 * np.ptp(U), U.max() + 0.1 * np.ptp(U))
-        ax.set_ylim(V.max() + 0.1 * np.ptp(V), V.min() - 0.1 * np.ptp(V))
-        ax.set_aspect("equal")
-        ax.set_xlabel("detector column (px)")
-        ax.set_ylabel("detector row (px)")
+        _detector_axes(ax, (U.min() - 0.1 * np.ptp(U), U.max() + 0.1 * np.ptp(U)),
+                       (V.min() - 0.1 * np.ptp(V), V.max() + 0.1 * np.ptp(V)))
         ax.set_title(f"field, max {mag.max():.3f} px", fontsize=8, loc="left")
     if places:
         _draw_places(axes[n - 1], places, field is None)
     return _png(fig)
+
+
+def _detector_axes(ax, cols: tuple, rows: tuple) -> None:
+    """Axes in detector pixels over ``cols``, ``rows`` (low, high) px, rows
+    downwards as in the image."""
+    ax.set_xlim(*cols)
+    ax.set_ylim(rows[1], rows[0])
+    ax.set_aspect("equal")
+    ax.set_xlabel("detector column (px)")
+    ax.set_ylabel("detector row (px)")
 
 
 def _draw_places(ax, places: list, alone: bool) -> None:
@@ -107,10 +114,6 @@ def _draw_places(ax, places: list, alone: bool) -> None:
         xs = [p["centre_px"][0] for p in places]
         ys = [p["centre_px"][1] for p in places]
         pad = 3 * max(p["radius_px"] for p in places)
-        ax.set_xlim(min(xs) - pad, max(xs) + pad)
-        ax.set_ylim(max(ys) + pad, min(ys) - pad)
-        ax.set_aspect("equal")
-        ax.set_xlabel("detector column (px)")
-        ax.set_ylabel("detector row (px)")
-    title = "" if alone else ax.get_title(loc="left") + "; "
-    ax.set_title(title + "red: places displaced from around them", fontsize=7, loc="left")
+        _detector_axes(ax, (min(xs) - pad, max(xs) + pad), (min(ys) - pad, max(ys) + pad))
+    title = "" if alone else ax.get_title(loc="left") + "\n"
+    ax.set_title(title + "red: local places", fontsize=7, loc="left")
