@@ -158,3 +158,26 @@ def test_large_spheres_overlapping_among_small_ones_are_each_measured():
         for x, y, _, _ in small + big:
             b = min(blobs, key=lambda b: np.hypot(b.x - x, b.y - y))
             assert np.hypot(b.x - x, b.y - y) < 0.2 and not b.flags, (declared, x, y, b)
+
+
+def test_parts_a_joint_fit_cannot_place_are_refused():
+    """Two overlapping spheres fitted jointly give parts; the same fit with
+    its centres undetermined (σ 1e200, as where the fit's pixels are masked:
+    a faint ripple beside an intensifier's dark surround became two spheres
+    of σ 1e6 px) gives none."""
+    from conecal.detect.options import Blob
+    from conecal.detect.overlap import disc_misfit, fit_group
+    from conecal.detect.pairs import _on_top_parts
+
+    rng = np.random.default_rng(5)
+    sph = np.array([[60.0, 50.0, 6.0, 0.06], [66.0, 51.0, 6.0, 0.06]])
+    a = (0.1 + render((100, 120), sph, 1.0) + rng.normal(0, 0.002, (100, 120))).astype(np.float32)
+    one = fit_group(a, np.array([[63.0, 50.5, 7.0, 0.08]]), 1.0, 0.002, quadratic=True)
+    fit = fit_group(a, sph + [0.5, -0.3, 0.2, 0.0], 1.0, 0.002, box=one[0], quadratic=True)
+    m = Blob(63.0, 50.5, 7.0, 0.5, 0.08, 0.5, 1.3, ["overlap"], 50.0, 0.1)
+    on_one = disc_misfit(a, one, 1.0, 0.002, (), None)[0]     # one sphere misfits the pair's disc
+    args = (a, [m, m], None, None, on_one, 6.0, 0.06, 1.0, 0.002, lambda R: 1.0, (), None)
+    got = _on_top_parts(args[0], args[1], fit, *args[3:])
+    assert got is not None and all(p.sigma < 0.2 for p in got[0])
+    lost = (*fit[:2], np.full_like(fit[2], 1e200), *fit[3:])
+    assert _on_top_parts(args[0], args[1], lost, *args[3:]) is None

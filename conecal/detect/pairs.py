@@ -432,6 +432,11 @@ def _on_top_parts(a, was: list, fit, chi2_one, on_one: float, radii, mu1: float,
             or np.sum(dense > 1.6) > 1 or np.min(gaps + np.eye(len(sph)) * 1e9) < _TWO_APART * sizes.min()
             or (chi2_one is not None and chi2 > _TWO_GAIN * chi2_one)):
         return None
+    # (a part the joint fit cannot place within its own radius is no measurement:
+    # beside an intensifier's dark surround a faint JPEG ripple was fitted as two
+    # spheres of the frame's contrast that no pixel held, their σ 1e6 px)
+    if not all(joint_sigma(s, kappa(R)) < R for (_, _, R, _), s in zip(sph, sig)):
+        return None
     on, off = disc_misfit(a, fit, blur, noise, mask_out, invalid)
     if (on > max(ADEQUATE, off) and not lenient) or on * _ONE_MISFIT > on_one or _rod_part(a, sph, blur, invalid):
         return None
