@@ -40,3 +40,56 @@ def test_a_helix_seen_away_from_its_ends_is_never_named_one_bead_along_with_conf
         res = search_frame(CAM, shape, xy)
         right = res.best is not None and np.array_equal(res.best.sph, seen[res.best.det])
         assert res.status.state != "ok" or right
+
+
+def _biplane():
+    """A 5x5 grid plane under a 4x4 plane laid out off its centre: a 90 deg
+    turn carries the grid onto itself and the other plane 4.6 mm off."""
+    g = (np.arange(5) - 2) * 11.45
+    low = np.array([[x, y, -22.7] for y in g for x in g])
+    h = (np.arange(4) - 1.5) * 11.45
+    high = np.array([[x + 0.7, y + 3.2, 22.7] for y in h for x in h])
+    return np.vstack([low, high])
+
+
+def test_an_ok_frame_named_by_a_partial_symmetry_is_doubted_by_its_moved_rival():
+    """A biplane frame named with the phantom turned by 90 deg about the
+    grid's normal, its pairs the grid's alone (the frame's own terms took up
+    the other plane's offset: an independent generator's frame, ok at 2x the
+    floor, every sphere named wrong). The poses of unordered frames predict
+    nothing; the frame's identity moved by the grid's turn, every detection
+    named again, explains them all: the frame is no longer ok with the wrong
+    name."""
+    from conecal.calib import second_look as sl
+    from conecal.calib.candidate import Candidate, assign, relabel
+    from conecal.calib.run import FreeOptions
+    from conecal.calib.search import SearchResult
+    from conecal.documents.status import OK
+    from tests.test_free_neighbours import _Bundle
+
+    points = _biplane()
+    shape = describe_phantom(points, np.arange(1, len(points) + 1), radius=1.25)
+    rng = np.random.default_rng(4)
+    poses = [(rotvec_to_matrix(rng.normal(0, 0.35, 3)), rng.normal(0, 8, 3)) for _ in range(9)]
+    dets, usable = {}, []
+    for k, (R, t) in enumerate(poses):
+        dets[k] = (CAM.project(points @ R.T + t) + rng.normal(0, 0.03, (len(points), 2)), np.full(len(points), 0.03))
+        right = Candidate(np.arange(len(points)), np.arange(len(points)), R, t, 0.04)
+        c = right
+        if k == 4:
+            # (the grid's quarter turn: sphere i of the grid named as the turn carries it)
+            turn = next(to for to in partial_maps(points)
+                        if np.allclose(points[[v for v in to if v >= 0]][:, :2] @ [[0, -1], [1, 0]],
+                                       points[[i for i, v in enumerate(to) if v >= 0]][:, :2], atol=0.1))
+            c = relabel(right, [None if v < 0 else v for v in turn], points, "turned")
+            # (every detection named as the turned pose puts the spheres: the other plane's 4.6 mm too)
+            sph, det = assign(CAM.project(points @ c.R.T + c.t), dets[k][0], 60.0)
+            c = Candidate(det, sph, c.R, c.t, 0.09)
+            assert len(det) == len(points) and not np.array_equal(sph, det)
+        usable.append({"frame": k, "slot": k, "pairs": (c.det, c.sph), "status": OK, "search": SearchResult(OK, c)})
+    b = _Bundle([(u["search"].best.R, u["search"].best.t) for u in usable])
+    won, lost = sl.second_look(b, [], usable, dets, shape, points, FreeOptions())
+    fr = usable[4]
+    named = fr["search"].best
+    assert fr in lost or (fr in won and np.array_equal(named.sph, named.det)), (fr["status"], len(named.sph))
+    assert all(u in (fr,) or (u not in lost and u not in won) for u in usable)

@@ -13,7 +13,7 @@ from conecal.calib.candidate import Candidate
 from conecal.calib.phantom import describe_phantom
 from conecal.calib.run import FreeOptions, _judge
 from conecal.calib.search import SearchResult, held_back, search_frame
-from conecal.calib.second_look import _own_terms, _refit, _worse_by
+from conecal.calib.refit import own_terms as _own_terms, refit as _refit, worse_by as _worse_by
 from conecal.geometry import ConeGeometry, rotvec_to_matrix
 from conecal.documents.status import OK, ambiguous
 from conecal.geometry.distortion import Distortion

@@ -11,12 +11,16 @@ frame is searched again on its undistorted detections, three times denser,
 and each candidate (the first search's and the new) is refitted with the
 calibrated camera and compared at the scan's noise floor: one that
 explains as many spheres and fits by more than ``mirror_chi2`` better than
-every other, at the noise floor itself, is the frame's identity. Every
-other ok frame is also refitted from the poses its neighbouring frames
-predict (and, when its pose jumps off the sweep, searched again near
+every other, at the noise floor itself, is the frame's identity (a 3-D
+phantom's with partial symmetries within ``_NEW_FLOOR`` of the scan's RMS).
+Every other ok frame is also refitted from the poses its neighbouring
+frames predict (and, when its pose jumps off the sweep, searched again near
 them; a grid's also with its identity relabelled by the lattice's turns,
-which doubt it only by explaining more detections at no more cost): when an identification found that way explains as many detections
-and fits as well or better, the frame is ambiguous (its visible spheres
+which doubt it only by explaining more detections at no more cost; a 3-D
+phantom's with its identity moved by each partial symmetry, every
+candidate fitting the frame's own distortion terms where the frame fits
+above ``_OWN_ABOVE`` of the scan's RMS): when an identification found that
+way explains as many detections and fits as well or better, the frame is ambiguous (its visible spheres
 admit the phantom turned); an ok frame's identity is never replaced here.
 A tied or unnamed frame of a phantom off a lattice is searched once more
 near the pose its neighbouring frames predict (the data still decide), and
@@ -34,10 +38,11 @@ import numpy as np
 
 from ..documents.status import OK, ambiguous
 from .bundle import Bundle
-from .candidate import Candidate, assign, refine_pose, refine_pose_and_terms
+from .candidate import Candidate
 from .lattice import TURNED, turned
 from .neighbours import by_neighbours, conventional, guesses, jumps, predicted, same_pose
-from .partial import screw_tie
+from .partial import SCREWED, moved_poses, partial_maps, screw_tie
+from .refit import MSAC_CAP, msac, named_from, own_terms, refit, worse_by
 from .search import search_frame, unseen_spheres
 
 # the statuses a second look may overturn: not a frame with too few markers
@@ -49,64 +54,15 @@ _MISSING_SHARE = 0.25
 # shadows touch, and a wrong pose's unseen spheres are not counted: 13 of 45
 # detections fitted within 0.3 px on an independent generator's 7x7 grid)
 _EXPLAINED_SHARE = 0.5
-# MSAC's cap on a detection's cost ((r / pooled RMS)^2: 3 RMS), and how much
-# less a candidate must cost than the one explaining the most detections to tie
-_MSAC_CAP = 9.0
-_MSAC_MARGIN = 2 * _MSAC_CAP
-
-
-def _own_terms(b: Bundle):
-    """Raw detections (n, 2) px of a frame -> None, or, when the family has
-    per-frame terms (an intensifier's twist and its centre, which follow the
-    field as the arm turns), a function (R, t, sph, det, points, gate) ->
-    (R, t, those detections undistorted): the pose and the frame's own terms
-    fitted together (robust at ``gate`` px) to the pairs (``sph``,
-    ``det``), the shared distortion held. The per-frame terms' median would
-    leave a frame its own twist: on an independent renderer whose twist's
-    centre moves 60-150 px from frame to frame, the right identification of
-    a ball phantom's frame missed the noise floor by 0.43 px against 0.41."""
-    dist = b.frame_distortion(None)
-    if dist is None or not b.family.per_frame:
-        return lambda raw: None
-    free = [dist.names.index(n) for n in b.family.per_frame]
-    cam = b.camera
-
-    def for_frame(raw: np.ndarray):
-        def fit(R, t, sph, det, points, gate):
-            if len(sph) < 2 * b.family.k_frame + 4:      # (the pose's 6 and the terms from as many spheres)
-                return R, t, dist.undistort(raw)
-            R, t, _, own = refine_pose_and_terms(cam, points[sph], raw[det], R, t, gate, dist, free,
-                                                 b.family.twist_centre)
-            return R, t, own.undistort(raw)
-        return fit
-    return for_frame
-
-
-def _refit(cam, points: np.ndarray, xy: np.ndarray, c: Candidate, gate: float, own=None) -> Candidate:
-    """Candidate ``c`` refitted on undistorted detections ``xy`` with the
-    calibrated camera, its spheres re-assigned within ``gate`` px; ``own``
-    (see ``_own_terms``): the frame's per-frame distortion terms fitted to
-    this identification's pairs too (the candidate then holds the
-    detections as they undistort them)."""
-    R, t, sph, det = c.R, c.t, c.sph, c.det
-    for _ in range(3):
-        if len(sph) < 4:
-            return replace(c, rms_px=np.inf)
-        R, t, _ = refine_pose(cam, points[sph], xy[det], R, t, f_scale=gate)
-        if own is not None:
-            R, t, xy = own(R, t, sph, det, points, gate)
-        new_sph, new_det = assign(cam.project(points @ R.T + t), xy, gate)
-        if np.array_equal(new_sph, sph) and np.array_equal(new_det, det):
-            break
-        sph, det = new_sph, new_det
-    if len(sph) < 4:
-        return replace(c, rms_px=np.inf)
-    # spheres and RMS over the markers within 3 median residuals (a gross error
-    # counts for neither: 3.5 sigma of a 2-D Gaussian)
-    r = np.linalg.norm(cam.project(points[sph] @ R.T + t) - xy[det], axis=1)
-    keep = r <= 3 * np.median(r)
-    return Candidate(det[keep], sph[keep], R, t, float(np.sqrt(np.mean(r[keep] ** 2))), c.how + ", second look",
-                     xy=xy if own is not None else None)
+# how much less a candidate must cost (MSAC, ``refit.msac``) than the one
+# explaining the most detections to tie
+_MSAC_MARGIN = 2 * MSAC_CAP
+# a second look names a frame only within this many times the scan's RMS when
+# the phantom has partial symmetries (right names: 0.5-1.2x)
+_NEW_FLOOR = 1.5
+# ... and doubts an ok frame fitting above this many times the scan's RMS with
+# every rival fitting the frame's own distortion terms (right frames: 0.6-1.2x)
+_OWN_ABOVE = 1.25
 
 
 def second_look(b: Bundle, out: list, usable: list, dets: dict, shape, points: np.ndarray, opt):
@@ -124,7 +80,7 @@ def second_look(b: Bundle, out: list, usable: list, dets: dict, shape, points: n
     pooled = float(np.sqrt(np.mean(np.sum(b.residual_px ** 2, 1))))    # 2-D RMS, px
     gate = max(0.5, opt.outlier_factor * pooled)
     cam, dist = b.camera, b.frame_distortion(None)
-    own_for = _own_terms(b)
+    own_for = own_terms(b)
     won, lost, ties = [], [], {}
     pending = {}      # frame -> (fr, the denser search's verdict, its identity before or None)
     for fr in usable:
@@ -277,13 +233,20 @@ def _decide(cam, dist, shape, points, xy, old: list, gate: float, pooled: float,
     old = old + [c for o in old for c in turned(shape, points, o)]
     again = search_frame(cam, shape, xy, None, replace(opt.search, n_orientations=3 * opt.search.n_orientations))
     new = [again.best, *again.alternatives] if again.best is not None else []
-    return _rank(cam, shape, points, xy, old + new, gate, pooled, opt, again.convention, own)
+    verdict = _rank(cam, shape, points, xy, old + new, gate, pooled, opt, again.convention, own)
+    # (named at the noise floor itself where a 3-D phantom's partial symmetries
+    # admit other names: an independent generator's biplane frame, named with
+    # the phantom turned by 90 deg at 2.1x the scan's RMS, passed the 2.5x limit)
+    if verdict is not None and not isinstance(verdict, Tie) and shape.lattice is None \
+            and verdict[0].rms_px > _NEW_FLOOR * pooled and partial_maps(points):
+        return None
+    return verdict
 
 
 def _rank(cam, shape, points, xy, cands: list, gate: float, pooled: float, opt, convention: str = "", own=None):
     """``cands`` refitted on undistorted detections ``xy`` with the calibrated
     camera and ranked: (winner, convention), a Tie, or None (see _decide)."""
-    cands = [_refit(cam, points, xy, c, gate, own) for c in cands]
+    cands = [refit(cam, points, xy, c, gate, own) for c in cands]
     # (the gate here is the noise floor's, so a sphere a distortion the model
     # lacks moves by a px is not assigned; it is there all the same: under an
     # independent generator's unmodelled bump the right labelling of a grid
@@ -315,7 +278,7 @@ def _rank(cam, shape, points, xy, cands: list, gate: float, pooled: float, opt, 
     # unseen spheres that tell them apart are undetected ones as often)
     tied = [c for c, tw in zip(cands[1:], twin)
             if (c.score >= best.score - 1 or screw_tie(shape, best, c)) and not _same(c, best) and not tw
-            and _worse_by(cam, points, xy, c, best) / var < opt.mirror_chi2]
+            and worse_by(cam, points, xy, c, best) / var < opt.mirror_chi2]
     if best.rms_px > opt.floor_factor * pooled:
         return None
     # Explaining the most detections within the floor's gate is not enough
@@ -326,34 +289,13 @@ def _rank(cam, shape, points, xy, cands: list, gate: float, pooled: float, opt, 
     # wrong ok). Scored as MSAC does, every detection costs its squared
     # residual over the floor's, at most 9, and an unexplained detection or
     # an unseen sphere 9: one that costs clearly less than the best ties.
-    costs = [_msac(cam, points, xy, c, pooled) for c in cands]
+    costs = [msac(cam, points, xy, c, pooled) for c in cands]
     lean = cands[int(np.argmin(costs))]
     if min(costs) < costs[0] - _MSAC_MARGIN and not _same(lean, best) and all(not _same(lean, c) for c in tied):
         tied.append(lean)
     if tied:
         return Tie(_tied(best, tied, "best "), [best] + tied, convention)
     return best, convention
-
-
-def _worse_by(cam, points, xy, c: Candidate, best: Candidate) -> float:
-    """Summed squared residual (px^2) by which ``c`` fits worse than ``best``:
-    over the spheres it explains, or, for a rival explaining more than
-    ``best``, over its closest residuals, as many as ``best`` has. (On an
-    independent generator's helix the right labelling, 20 spheres at 0.137
-    px, was judged over all 20 against a screw-shifted one's 19 at 0.107 px
-    and missed the tie by 0.1 of chi-square: the shifted one was taken.)"""
-    k = len(best.sph)
-    if len(c.sph) <= k:
-        return len(c.sph) * (c.rms_px ** 2 - best.rms_px ** 2)
-    mine = np.sort(_squared_residuals(cam, points, xy, c))
-    return float(mine[:k].sum() - k * best.rms_px ** 2)
-
-
-def _squared_residuals(cam, points, xy, c: Candidate) -> np.ndarray:
-    """Squared residual (px^2) of each sphere candidate ``c`` explains, on
-    the frame's detections ``xy`` (or the candidate's own undistorted ones)."""
-    xy = xy if c.xy is None else c.xy
-    return np.sum((cam.project(points[c.sph] @ c.R.T + c.t) - xy[c.det]) ** 2, axis=1)
 
 
 def _doubts(cam, points, xy, c: Candidate, mine: Candidate, n_mine: int, pooled: float) -> bool:
@@ -367,7 +309,7 @@ def _doubts(cam, points, xy, c: Candidate, mine: Candidate, n_mine: int, pooled:
     spheres at 0.14 px, against a turned one's 40 at 0.23 px)."""
     if len(c.sph) >= n_mine:
         return True
-    return _msac(cam, points, xy, c, pooled) < _msac(cam, points, xy, mine, pooled) - _MSAC_MARGIN
+    return msac(cam, points, xy, c, pooled) < msac(cam, points, xy, mine, pooled) - _MSAC_MARGIN
 
 
 def _new(c: Candidate, current: Candidate | None) -> bool:
@@ -397,17 +339,6 @@ def _tied(first: Candidate, others: list, lead: str = "", tail: str = "") -> str
             ", ".join(f"{len(c.sph)} at {c.rms_px:.2f} px" for c in others[:3]) + f"){tail}")
 
 
-def _msac(cam, points, xy, c: Candidate, pooled: float) -> float:
-    """MSAC cost of candidate ``c`` over the frame's detections ``xy``: each
-    matched one min((r / pooled)^2, 9), each unexplained one and each sphere
-    the pose puts clear on the detector unseen 9 (px; ``pooled``: the
-    scan's 2-D RMS; a candidate holding its own undistorted detections is
-    scored on those)."""
-    r2 = _squared_residuals(cam, points, xy, c) / pooled ** 2
-    n_det = len(xy if c.xy is None else c.xy)
-    return float(np.minimum(r2, _MSAC_CAP).sum() + _MSAC_CAP * (n_det - len(c.sph) + c.missing))
-
-
 def _doubted(b: Bundle, usable: list, settled: list, dets: dict, shape, points, gate, pooled, opt):
     """Ok frames that another identification fits as well or better, one
     found from the poses their neighbouring frames predict (a phantom whose
@@ -420,29 +351,39 @@ def _doubted(b: Bundle, usable: list, settled: list, dets: dict, shape, points, 
     per-frame distortion). ``settled``: frames of ``usable`` already
     re-identified or set aside."""
     posed = {fr["frame"]: fr for fr in usable if fr not in settled}
+    own_for = own_terms(b)
     poses_of = {k: (b.R[fr["slot"]], b.t[fr["slot"]]) for k, fr in posed.items()}
     preds = predicted(b.camera, shape, points, poses_of)
     off = jumps(b.camera, shape, points, poses_of, preds)
     for k, fr in posed.items():
         poses = preds.get(k, [])
-        if not poses and shape.lattice is None:
+        if not poses and shape.lattice is None and not partial_maps(points):
             continue
         cam, dist = b.frame_camera(fr["slot"]), b.frame_distortion(fr["slot"])
-        xy = dets[k][0]
-        xy = dist.undistort(xy) if dist is not None else xy
         d, p = fr["pairs"]
         current = Candidate(np.asarray(d), np.asarray(p), b.R[fr["slot"]], b.t[fr["slot"]], how=fr["search"].best.how)
+        moved = moved_poses(shape, current)
+        # (the frame's own terms were fitted to its identity, which a rival
+        # moved by a partial symmetry doubts: where the frame fits above the
+        # scan's RMS, every candidate fits its own; a turned biplane frame's
+        # took up the turn at 2x the RMS)
+        own = own_for(dets[k][0]) if moved and fr["rms_px"] > _OWN_ABOVE * pooled else None
+        if own is not None:
+            dist = b.frame_distortion(None)
+        xy = dist.undistort(dets[k][0]) if dist is not None else dets[k][0]
         # (a grid's turns: where shadows merge, the search may have offered
         # only a turned labelling, and the right one explains more)
         starts = turned(shape, points, current)
-        for R, t in poses:
-            # (a neighbour's pose is tens of px off: each detection goes to the
-            # nearest sphere within half the spheres' median spacing)
-            q = cam.project(points @ R.T + t)
-            spacing = np.linalg.norm(q[:, None] - q[None], axis=-1) + np.diag(np.full(len(q), np.inf))
-            sph, det = assign(q, xy, max(4 * gate, 0.5 * float(np.median(spacing.min(1)))))
-            if len(sph) >= opt.search.min_spheres:
-                starts.append(Candidate(det, sph, R, t, how="from the neighbouring frames' poses"))
+        # (and a 3-D phantom's partial symmetries: the frame's identity moved
+        # by one, every detection named again from there)
+        named = set()
+        for (R, t), how in [(p, "from the neighbouring frames' poses") for p in poses] + \
+                [(p, SCREWED) for p in moved]:
+            c = named_from(cam, points, xy, R, t, gate, opt, how)
+            # (one naming once: a helix's screws by one bead or two name a frame alike)
+            if c is not None and (key := (c.det.tobytes(), c.sph.tobytes())) not in named:
+                named.add(key)
+                starts.append(c)
         if k in off:
             # (its pose jumps off the sweep, as a turned phantom's does; a
             # neighbour's pose may be tens of px off, beyond the assignment
@@ -451,7 +392,7 @@ def _doubted(b: Bundle, usable: list, settled: list, dets: dict, shape, points, 
             starts += [c for c in [near.best, *near.alternatives] if c is not None]
         if not starts:
             continue
-        verdict = _rank(cam, shape, points, xy, [current] + starts, gate, pooled, opt, fr["search"].convention)
+        verdict = _rank(cam, shape, points, xy, [current] + starts, gate, pooled, opt, fr["search"].convention, own)
         if verdict is None:
             continue
         cands = verdict.cands if isinstance(verdict, Tie) else [verdict[0]]
@@ -459,8 +400,9 @@ def _doubted(b: Bundle, usable: list, settled: list, dets: dict, shape, points, 
         if not others:
             continue
         # (refitted only for a rival: most ok frames' ranking returns their own identity)
-        mine = _refit(cam, points, xy, current, gate)
-        mine = replace(mine, missing=unseen_spheres(cam, shape, mine.R, mine.t, mine.sph, xy))
+        mine = refit(cam, points, xy, current, gate, own)
+        mine = replace(mine, missing=unseen_spheres(cam, shape, mine.R, mine.t, mine.sph,
+                                                    xy if mine.xy is None else mine.xy))
         # (a grid's turn doubts only by explaining more detections at no more
         # cost: one that explains as many is its visible part's symmetry, which
         # the search's choice already met, and one bent to keep a sphere more
@@ -468,7 +410,7 @@ def _doubted(b: Bundle, usable: list, settled: list, dets: dict, shape, points, 
         # frames to such turns)
         others = [c for c in others if _doubts(cam, points, xy, c, mine, len(current.sph), pooled)
                   and (TURNED not in c.how or (len(c.sph) > len(mine.sph) and
-                                                _msac(cam, points, xy, c, pooled) <= _msac(cam, points, xy, mine,
+                                                msac(cam, points, xy, c, pooled) <= msac(cam, points, xy, mine,
                                                                                            pooled)))]
         if others:
             tail = (", one of them the grid turned" if any(TURNED in c.how for c in others)
