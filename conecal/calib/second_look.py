@@ -367,7 +367,7 @@ def _doubted(b: Bundle, usable: list, settled: list, dets: dict, shape, points, 
         # moved by a partial symmetry doubts: where the frame fits above the
         # scan's RMS, every candidate fits its own; a turned biplane frame's
         # took up the turn at 2x the RMS)
-        own = own_for(dets[k][0]) if moved and fr["rms_px"] > _OWN_ABOVE * pooled else None
+        own = own_for(dets[k][0]) if moved and fr.get("rms_px", np.inf) > _OWN_ABOVE * pooled else None
         if own is not None:
             dist = b.frame_distortion(None)
         xy = dist.undistort(dets[k][0]) if dist is not None else dets[k][0]
