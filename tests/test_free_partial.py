@@ -93,3 +93,30 @@ def test_an_ok_frame_named_by_a_partial_symmetry_is_doubted_by_its_moved_rival()
     named = fr["search"].best
     assert fr in lost or (fr in won and np.array_equal(named.sph, named.det)), (fr["status"], len(named.sph))
     assert all(u in (fr,) or (u not in lost and u not in won) for u in usable)
+
+
+def test_a_frame_named_anew_is_held_to_the_floor_where_partial_symmetries_admit_other_names():
+    """The bundle's judge: a frame the second look named, at 2.4x the median
+    frame RMS (an independent generator's biplane frame, every sphere named
+    turned), passes the 2.5x limit as any frame does, but not where the
+    phantom's partial symmetries admit wrong names that fit so (``anew``);
+    a frame the search named at that RMS is judged as before."""
+    from types import SimpleNamespace
+
+    from conecal.calib.run import FreeOptions, _judge
+    from conecal.documents.status import OK
+
+    rms = [0.06] * 9 + [0.144]
+    slot = np.repeat(np.arange(10), 30)
+    signs = np.where(np.arange(30)[:, None] % 2, 1.0, -1.0) * np.ones((30, 2))
+    res = np.vstack([signs * r / np.sqrt(2) for r in rms])     # each frame's RMS exactly r
+    b = SimpleNamespace(residual_px=res)
+    obs = SimpleNamespace(slot=slot)
+
+    def frames(named_anew):
+        return [{"frame": k, "status": OK, **({"second_look": True} if named_anew and k == 9 else {})}
+                for k in range(10)]
+    for anew, named, out in ((False, True, False), (True, True, True), (True, False, False)):
+        usable = frames(named)
+        dropped, _ = _judge(b, usable, obs, FreeOptions(), anew=anew)
+        assert dropped == out and (usable[9]["status"].ok != out), (anew, named)

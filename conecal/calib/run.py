@@ -30,6 +30,7 @@ from .twist import seed_twists
 from .alternatives import centred_alternative, restarted_alternative
 from .camera import Camera
 from .choose import choose_family, choose_refinement
+from .partial import partial_maps
 from .phantom import describe_phantom
 from .restart import from_before
 from .candidate import assign, refine_pose
@@ -89,6 +90,9 @@ def _detections(frame: dict):
 # a flag class's sigma is rescaled only from this many of its markers, and
 # only when its residuals' scale differs from the scan's by more than this
 # factor (the median of n chi-square(2) values scatters by ~1.7 / sqrt(n))
+# a frame the second look named, of a 3-D phantom with partial symmetries, is
+# held to this many times the median frame RMS (right ones: 0.7-1.2x)
+_ANEW_FACTOR = 1.5
 _CLASS_MIN = 20
 _CLASS_DIFFERS = 1.25
 
@@ -244,7 +248,8 @@ def _solve(fams, cam, usable, dets, shape, radius, opt: FreeOptions, before=None
                                            start=start, max_nfev=100)
         cls = _row_classes(usable, dets, obs)
         dropped, bar = _judge(final, usable, obs, opt, bar,
-                              None if cls is None else np.array(["overlap" in c for c in cls]))
+                              None if cls is None else np.array(["overlap" in c for c in cls]),
+                              anew=shape.lattice is None and bool(partial_maps(shape.points)))
         if not dropped:
             return final, fits, choice, refinement, pinhole, usable, obs
         usable = [fr for fr in usable if fr["status"].ok]
@@ -391,7 +396,7 @@ def _regather(b: Bundle, obs: Observations, usable, dets, shape, radius, opt: Fr
 
 
 def _judge(b: Bundle, usable, obs: Observations, opt: FreeOptions, bar: float = 0.0,
-           overlap: np.ndarray | None = None) -> tuple[bool, float]:
+           overlap: np.ndarray | None = None, anew: bool = False) -> tuple[bool, float]:
     """Per-frame RMS against the scan's median frame RMS; returns whether any
     frame was rejected (then the bundle is solved again without it) and the
     limit (px). ``bar``: the limit of the judgement before, which this one
@@ -407,7 +412,13 @@ def _judge(b: Bundle, usable, obs: Observations, opt: FreeOptions, bar: float = 
     against 0.24 while its identity and pose were right. The limit still
     comes from the frames' whole RMS, so the judge only grows more lenient
     where the excess is the overlaps' (a frame made of them, as a grid seen
-    edge-on, is judged on them all)."""
+    edge-on, is judged on them all).
+
+    ``anew``: a frame the second look named (a 3-D phantom with partial
+    symmetries) is held to ``_ANEW_FACTOR`` of the median frame RMS: it was
+    named at the floor on its markers within 3 median residuals, and a wrong
+    name (an independent generator's biplane frame turned by 90 deg) sat in
+    the bundle at 2.4x the median, over all its markers."""
     r2 = np.sum(b.residual_px ** 2, 1)
     per = np.array([np.sqrt(np.mean(r2[obs.slot == s])) for s in range(len(usable))])
     pooled = float(np.median(per))
@@ -422,13 +433,15 @@ def _judge(b: Bundle, usable, obs: Observations, opt: FreeOptions, bar: float = 
     for s, fr in enumerate(usable):
         fr["rms_px"] = float(per[s])
         fr["slot"] = s
-        if judged[s] > limit:
+        mine = min(limit, _ANEW_FACTOR * pooled) if anew and fr.get("second_look") else limit
+        if judged[s] > mine:
             fr["slot"] = None
-            why = (f"{opt.floor_factor:g}x the scan's median frame RMS {pooled:.3f} px"
+            why = (f"{_ANEW_FACTOR:g}x the scan's median frame RMS {pooled:.3f} px, named by the second look"
+                   if mine < limit else f"{opt.floor_factor:g}x the scan's median frame RMS {pooled:.3f} px"
                    if limit <= opt.floor_factor * pooled else
                    f"the limit before frames were rejected; the median frame RMS is now {pooled:.3f} px")
             aside = " (overlap markers aside)" if judged[s] != per[s] else ""
-            fr["status"] = rejected("residual", f"residual {judged[s]:.3f} px RMS{aside}, above {limit:.3f} px "
+            fr["status"] = rejected("residual", f"residual {judged[s]:.3f} px RMS{aside}, above {mine:.3f} px "
                                     f"({why}{', capped by --max-rms' if limit == opt.max_rms_px else ''})")
             dropped = True
     return dropped, limit
