@@ -87,12 +87,12 @@ def _detections(frame: dict):
     return xy, np.maximum(sig, 1e-3), cls
 
 
-# a flag class's sigma is rescaled only from this many of its markers, and
-# only when its residuals' scale differs from the scan's by more than this
-# factor (the median of n chi-square(2) values scatters by ~1.7 / sqrt(n))
 # a frame the second look named, of a 3-D phantom with partial symmetries, is
 # held to this many times the median frame RMS (right ones: 0.7-1.2x)
 _ANEW_FACTOR = 1.5
+# a flag class's sigma is rescaled only from this many of its markers, and
+# only when its residuals' scale differs from the scan's by more than this
+# factor (the median of n chi-square(2) values scatters by ~1.7 / sqrt(n))
 _CLASS_MIN = 20
 _CLASS_DIFFERS = 1.25
 
