@@ -103,7 +103,8 @@ def test_a_frame_named_anew_is_held_to_the_floor_where_partial_symmetries_admit_
     a frame the search named at that RMS is judged as before."""
     from types import SimpleNamespace
 
-    from conecal.calib.run import FreeOptions, _judge
+    from conecal.calib.judge import judge as _judge
+    from conecal.calib.run import FreeOptions
     from conecal.documents.status import OK
 
     rms = [0.06] * 9 + [0.144]
