@@ -74,17 +74,19 @@ def partial_maps(points: np.ndarray) -> tuple:
     return _maps(P.tobytes(), len(P))
 
 
-def moved(shape: PhantomShape, c: Candidate) -> list[Candidate]:
+def moved(shape: PhantomShape, c: Candidate, least: float | None = None) -> list[Candidate]:
     """Candidate ``c`` relabelled by each partial symmetry of a 3-D phantom
     (see the module's docstring): each detection keeps its place and takes
     the sphere its sphere is carried onto, and the pose moves alike so that
-    the relabelled spheres land where the detections are."""
+    the relabelled spheres land where the detections are; those keeping
+    ``least`` spheres (default: three quarters of ``c``'s, 4 or more: a
+    rival must explain about as many, a motion that keeps few is none)."""
     if shape.lattice is not None:
         return []
+    least = max(4, 0.75 * len(c.sph)) if least is None else least
     out = []
     for to in partial_maps(shape.points):
-        # (a rival must explain about as many: a motion that keeps few is none)
-        m = relabel(c, [None if v < 0 else v for v in to], shape.points, SCREWED, max(4, 0.75 * len(c.sph)))
+        m = relabel(c, [None if v < 0 else v for v in to], shape.points, SCREWED, least)
         if m is not None:
             out.append(m)
     return out
@@ -100,14 +102,7 @@ def moved_poses(shape: PhantomShape, c: Candidate) -> list[tuple]:
     (the other plane's 3 mm offset taken up by the pose and the frame's
     twist), ok and wrong, and only :func:`moved`'s rivals, which keep the
     carried spheres alone, were offered (too few to count)."""
-    if shape.lattice is not None:
-        return []
-    out = []
-    for to in partial_maps(shape.points):
-        m = relabel(c, [None if v < 0 else v for v in to], shape.points, SCREWED)
-        if m is not None:
-            out.append((m.R, m.t))
-    return out
+    return [(m.R, m.t) for m in moved(shape, c, least=4)]
 
 
 def related(points: np.ndarray, a: Candidate, b: Candidate) -> bool:
