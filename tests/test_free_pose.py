@@ -374,7 +374,8 @@ def test_a_near_frontal_grid_is_one_pose_not_a_mirror_ambiguity():
     broad solution, so the frame is ok with its rotation sigma widened by half
     the turn. Tilted 4.6 deg, the mirror (9.2 deg away) is a second solution:
     ambiguous."""
-    from conecal.calib.run import FreeOptions, _mirrors
+    from conecal.calib.judge import mirrors as _mirrors
+    from conecal.calib.run import FreeOptions
     from conecal.documents.status import OK
 
     poses = random_poses(np.random.default_rng(4), 8, 40.0, 8.0, 10.0)

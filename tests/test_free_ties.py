@@ -11,7 +11,8 @@ from conecal.calib.bundle import Observations, family_named
 from conecal.calib.camera import Camera
 from conecal.calib.candidate import Candidate
 from conecal.calib.phantom import describe_phantom
-from conecal.calib.run import FreeOptions, _judge
+from conecal.calib.judge import judge as _judge
+from conecal.calib.run import FreeOptions
 from conecal.calib.search import SearchResult, held_back, search_frame
 from conecal.calib.refit import own_terms as _own_terms, refit as _refit, worse_by as _worse_by
 from conecal.geometry import ConeGeometry, rotvec_to_matrix
