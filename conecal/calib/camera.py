@@ -14,6 +14,7 @@ from __future__ import annotations
 from dataclasses import dataclass, replace
 
 import numpy as np
+from scipy.ndimage import distance_transform_edt
 
 from ..geometry import ConeGeometry
 
@@ -24,7 +25,8 @@ INTRINSIC_UNITS = {"sdd": "mm", "c0": "px", "r0": "px"}
 @dataclass(frozen=True)
 class Camera:
     """sdd (mm), principal point c0, r0 (px), nominal sod (mm; fixes the lab
-    origin only), pixel pitch (pu, pv) mm, shape (rows, cols)."""
+    origin only), pixel pitch (pu, pv) mm, shape (rows, cols); ``field``:
+    where the detector sees the beam (:class:`Field`), None: everywhere."""
 
     sdd: float
     c0: float
@@ -32,6 +34,7 @@ class Camera:
     sod: float
     pitch: tuple
     shape: tuple
+    field: "Field | None" = None
 
     @classmethod
     def nominal(cls, geometry: ConeGeometry, sod: float) -> "Camera":
@@ -101,6 +104,34 @@ class Camera:
         JK[:, 0, 1] = 1.0
         JK[:, 1, 2] = 1.0
         return p, JX, JK
+
+
+@dataclass(frozen=True, eq=False)
+class Field:
+    """Where the detector sees the beam: ``dist`` (rows, cols), each pixel's
+    distance (px) to the nearest pixel that does not (an image intensifier's
+    black surround, as the flat shows it)."""
+
+    dist: np.ndarray
+
+    @classmethod
+    def from_mask(cls, mask: np.ndarray | None) -> "Field | None":
+        """From a (rows, cols) mask of the pixels that see the beam; None when
+        there is none or every pixel does."""
+        if mask is None or mask.all():
+            return None
+        return cls(distance_transform_edt(mask).astype(np.float32))
+
+    def holds(self, xy, reach) -> np.ndarray:
+        """Whether discs about ``xy`` (..., 2) px (c, r) of radius ``reach``
+        (px, broadcast) lie where the beam is seen."""
+        xy = np.asarray(xy, float)
+        c, r = np.rint(xy[..., 0]), np.rint(xy[..., 1])
+        rows, cols = self.dist.shape
+        on = np.isfinite(c) & np.isfinite(r) & (c >= 0) & (c < cols) & (r >= 0) & (r < rows)
+        out = np.zeros(xy.shape[:-1], bool)
+        out[on] = self.dist[r[on].astype(int), c[on].astype(int)] >= np.broadcast_to(reach, out.shape)[on]
+        return out
 
 
 class GeometryCamera:

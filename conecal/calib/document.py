@@ -149,7 +149,7 @@ def free_document(res: FreeResult, opt: FreeOptions, header: dict) -> dict:
            "gauge": GAUGE + (TWIST_GAUGE if b.family.twist_centre else ""), "distortion_choice": res.choice, "phantom_refinement": _refinement(res),
            "marker_sigma_scale": res.sigma_scales,
            "phantom": {"planar": bool(res.shape.planar), "lattice": res.shape.lattice is not None,
-                       "symmetries": len(res.shape.symmetries)},
+                       "symmetries": len(res.shape.perms)},
            "units": {"t": "mm", "R": "rotation matrix, P_lab = R p_phantom + t", "rms_px": "px",
                      "sigma_rotation_deg": "deg (rotation vector components, lab axes)",
                      "sigma_translation_mm": "mm", "intrinsics": "sdd mm; c0, r0 px (principal point)"},

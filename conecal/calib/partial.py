@@ -6,72 +6,25 @@ helix's ends, or beads of the other size when sizes code the position, which
 so the search must offer the moved labelling as a rival and let the tie make
 the frame ambiguous (an independent renderer's coded helix: three frames
 named every bead one along, "ok", the pose screwed by 15 deg and 4.6 mm).
-Whole symmetries (a grid's turns) are the lattice's (:mod:`.lattice`).
-Units: mm, phantom frame.
+Whole symmetries (a grid's turns, a cube's corners) are the phantom's own
+(:mod:`.phantom`): the same image, the same calibration. Units: mm,
+phantom frame.
 """
 
 from __future__ import annotations
 
-import functools
-
 import numpy as np
 
-from .candidate import Candidate, relabel, rigid_fit
-from .phantom import PhantomShape
+from .candidate import Candidate, relabel
+from .phantom import PhantomShape, point_maps
 
-# two spheres are the same place within this share of the phantom's spacing
-_SAME = 0.05
-# a motion counts when it carries this share of the spheres onto spheres
-_SHARE = 0.5
-# phantoms with more spheres than this are not searched (a grid's are its lattice's)
-_MOST = 200
 SCREWED = "moved by a partial symmetry of the phantom"
-
-
-@functools.lru_cache(maxsize=16)
-def _maps(key: bytes, n: int) -> tuple:
-    P = np.frombuffer(key).reshape(n, 3)
-    D = np.linalg.norm(P[:, None] - P[None], axis=-1)
-    off = D + np.diag(np.full(n, np.inf))
-    spacing = float(np.median(off.min(1)))
-    tol = _SAME * spacing
-    found: dict = {}
-    # each sphere with its nearest neighbour and the next nearest not on their line
-    order = np.argsort(off, axis=1)
-    for a in range(n):
-        b = int(order[a, 0])
-        for c in range(n):
-            for e in np.flatnonzero(np.abs(D[c] - D[a, b]) < tol):
-                if (c, int(e)) == (a, b) or c == e:
-                    continue
-                for g in order[a, 1:4]:
-                    if g == b:
-                        continue
-                    h = np.flatnonzero((np.abs(D[c] - D[a, g]) < tol) & (np.abs(D[e] - D[b, g]) < tol))
-                    for hh in h:
-                        if len({c, int(e), int(hh)}) < 3:
-                            continue
-                        R, o = rigid_fit(P[[a, b, g]], P[[c, int(e), int(hh)]])
-                        Q = P @ R.T + o
-                        d = np.linalg.norm(Q[:, None] - P[None], axis=-1)
-                        j = d.argmin(1)
-                        hit = d[np.arange(n), j] < 2 * tol
-                        if hit.sum() < max(5, _SHARE * n) or np.all(j[hit] == np.flatnonzero(hit)):
-                            continue
-                        to = tuple(int(j[i]) if hit[i] else -1 for i in range(n))
-                        found.setdefault(to, None)
-                    break   # one third sphere fixes the motion
-    # (a whole symmetry maps every sphere: that is a phantom symmetry, not partial)
-    return tuple(t for t in found if -1 in t)
 
 
 def partial_maps(points: np.ndarray) -> tuple:
     """The partial symmetries of ``points`` (n, 3) mm: tuples ``to`` with
     ``to[i]`` the sphere that sphere i is carried onto, -1 where none."""
-    P = np.ascontiguousarray(points, dtype=np.float64)
-    if len(P) < 5 or len(P) > _MOST:
-        return ()
-    return _maps(P.tobytes(), len(P))
+    return tuple(t for t in point_maps(points) if -1 in t)
 
 
 def moved(shape: PhantomShape, c: Candidate, least: float | None = None) -> list[Candidate]:

@@ -10,15 +10,25 @@ identified by a pose search (``search.py``).
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass, field
 from itertools import product
 
 import numpy as np
 
+from ..geometry import matrix_to_rotvec
+from .candidate import rigid_fit
+
 # the eight signed permutations of the lattice axes (a square lattice's point group)
 LATTICE_MAPS = tuple(np.array(m) for m in
                      ([[a, 0], [0, b]] for a, b in product((1, -1), repeat=2)))
 LATTICE_MAPS = LATTICE_MAPS + tuple(np.array(m) for m in ([[0, a], [b, 0]] for a, b in product((1, -1), repeat=2)))
+# two spheres are the same place within this share of the phantom's spacing
+_SAME = 0.05
+# a rigid motion counts when it carries this share of the spheres onto spheres
+_SHARE = 0.5
+# 3-D phantoms with more spheres than this are not searched for rigid maps
+_MOST = 200
 
 
 @dataclass(frozen=True, eq=False)
@@ -27,7 +37,10 @@ class PhantomShape:
     plane (``origin``, in-plane unit vectors ``e1``, ``e2``, normal ``n``);
     ``lattice`` (n, 2) integer coordinates along ``basis`` (2, 2) mm in the
     (e1, e2) plane, or None; ``symmetries``: lattice maps (M, o) with
-    ``M @ ij + o`` carrying the phantom's lattice onto itself rigidly."""
+    ``M @ ij + o`` carrying the phantom's lattice onto itself rigidly;
+    ``perms``: the sphere index permutations of every rigid symmetry of the
+    phantom (a lattice's, or a 3-D phantom's: a cube's 23 turns), not the
+    identity, with ``perm_names`` describing each."""
 
     points: np.ndarray
     ids: np.ndarray
@@ -40,6 +53,8 @@ class PhantomShape:
     basis: np.ndarray | None = None
     symmetries: list = field(default_factory=list)
     radius: float = 1.0        # sphere radius, mm
+    perms: tuple = ()
+    perm_names: tuple = ()
 
     @property
     def plane_xy(self) -> np.ndarray:
@@ -77,7 +92,9 @@ def describe_phantom(points, ids, plane_tol: float = 0.02, lattice_tol: float = 
     planar = len(P) >= 4 and float(np.abs((P - origin) @ n).max()) <= plane_tol * spacing
     shape = PhantomShape(P, np.asarray(ids), planar, origin, e1, e2, n, radius=radius)
     if not planar:
-        return shape
+        perms = [np.array(to) for to in point_maps(P) if -1 not in to]
+        return PhantomShape(P, shape.ids, False, origin, e1, e2, n, radius=radius, perms=tuple(perms),
+                            perm_names=tuple(_turn_name(P, p) for p in perms))
     q = shape.plane_xy
     diffs = (q[:, None] - q[None]).reshape(-1, 2)
     length = np.hypot(diffs[:, 0], diffs[:, 1])
@@ -103,7 +120,70 @@ def describe_phantom(points, ids, plane_tol: float = 0.02, lattice_tol: float = 
     # the basis from every sphere (least squares), not from the median step: a
     # measured grid's small errors average out, so its symmetries are found
     B = np.linalg.lstsq(np.column_stack([ij, np.ones(len(ij))]), q, rcond=None)[0][:2].T
-    return PhantomShape(P, shape.ids, True, origin, e1, e2, n, ij, B, _symmetries(ij, B), radius)
+    sym = _symmetries(ij, B)
+    index = {tuple(int(v) for v in k): i for i, k in enumerate(ij)}
+    perms = tuple(np.array([index[tuple(int(v) for v in M @ k + o)] for k in ij]) for M, o in sym)
+    return PhantomShape(P, shape.ids, True, origin, e1, e2, n, ij, B, sym, radius, perms,
+                        tuple(symmetry_name(M, B) for M, _ in sym))
+
+
+def point_maps(points: np.ndarray) -> tuple:
+    """Rigid motions (proper: a turn and a shift) that carry half of the
+    spheres ``points`` (n, 3) mm or more, and 5 or more, onto spheres, not
+    the identity: tuples ``to`` with ``to[i]`` the sphere that sphere i is
+    carried onto, -1 where none (a partial symmetry, :mod:`.partial`); a
+    tuple without -1 is a whole symmetry of the phantom. Empty for fewer
+    than 5 or more than ``_MOST`` spheres."""
+    P = np.ascontiguousarray(points, dtype=np.float64)
+    if len(P) < 5 or len(P) > _MOST:
+        return ()
+    return _maps(P.tobytes(), len(P))
+
+
+@functools.lru_cache(maxsize=16)
+def _maps(key: bytes, n: int) -> tuple:
+    """(the search of :func:`point_maps`, cached by the points' bytes)"""
+    P = np.frombuffer(key).reshape(n, 3)
+    D = np.linalg.norm(P[:, None] - P[None], axis=-1)
+    off = D + np.diag(np.full(n, np.inf))
+    spacing = float(np.median(off.min(1)))
+    tol = _SAME * spacing
+    found: dict = {}
+    # each sphere with its nearest neighbour and the next nearest not on their line
+    order = np.argsort(off, axis=1)
+    for a in range(n):
+        b = int(order[a, 0])
+        for c in range(n):
+            for e in np.flatnonzero(np.abs(D[c] - D[a, b]) < tol):
+                if (c, int(e)) == (a, b) or c == e:
+                    continue
+                for g in order[a, 1:4]:
+                    if g == b:
+                        continue
+                    h = np.flatnonzero((np.abs(D[c] - D[a, g]) < tol) & (np.abs(D[e] - D[b, g]) < tol))
+                    for hh in h:
+                        if len({c, int(e), int(hh)}) < 3:
+                            continue
+                        R, o = rigid_fit(P[[a, b, g]], P[[c, int(e), int(hh)]])
+                        Q = P @ R.T + o
+                        d = np.linalg.norm(Q[:, None] - P[None], axis=-1)
+                        j = d.argmin(1)
+                        hit = d[np.arange(n), j] < 2 * tol
+                        if hit.sum() < max(5, _SHARE * n) or np.all(j[hit] == np.flatnonzero(hit)):
+                            continue
+                        to = tuple(int(j[i]) if hit[i] else -1 for i in range(n))
+                        found.setdefault(to, None)
+                    break   # one third sphere fixes the motion
+    return tuple(found)
+
+
+def _turn_name(points: np.ndarray, perm: np.ndarray) -> str:
+    """A whole symmetry of a 3-D phantom as the turn it is (phantom frame)."""
+    A, _ = rigid_fit(points, points[perm])
+    w = matrix_to_rotvec(A)
+    ang = float(np.degrees(np.linalg.norm(w)))
+    axis = w / max(np.linalg.norm(w), 1e-12)
+    return f"turned {ang:.0f} deg about the phantom's ({axis[0]:+.2f}, {axis[1]:+.2f}, {axis[2]:+.2f}) axis"
 
 
 def _symmetries(ij: np.ndarray, B: np.ndarray) -> list:

@@ -28,10 +28,11 @@ from ..geometry import rotvec_to_matrix
 from .bundle import FAMILIES, Bundle, Family, Observations, adjust, family_named
 from .twist import seed_twists
 from .alternatives import centred_alternative, restarted_alternative
-from .camera import Camera
+from .camera import Camera, Field
 from .choose import choose_family, choose_refinement
 from .partial import partial_maps
 from .judge import judge, mirrors
+from .neighbours import in_sequence
 from .phantom import describe_phantom
 from .restart import from_before
 from .candidate import assign
@@ -161,6 +162,7 @@ def calibrate_free(scan, markers: dict, geometry, opt: FreeOptions = FreeOptions
     ``geometry``: the starting (nominal) ConeGeometry in the free-pose lab
     frame. ``progress(done, total)``, ``say(line)``: feedback."""
     cam = Camera.nominal(geometry, scan.config.nominal.sod)
+    cam = replace(cam, field=Field.from_mask(getattr(scan.stack, "field_mask", None)))
     radius = scan.config.markers.diameter / 2
     shape = describe_phantom(scan.phantom.positions, scan.phantom.ids, radius=radius)
     guesses = _guesses(scan)
@@ -195,6 +197,7 @@ def calibrate_free(scan, markers: dict, geometry, opt: FreeOptions = FreeOptions
     scales, rescaled = {}, False
     before = None
     for look in range(2):
+        in_sequence(cam, shape, usable)
         final, fits, choice, refinement, pinhole, usable, obs = _solve(fams, cam, usable, dets, shape, radius, opt,
                                                                         before)
         if look:

@@ -270,7 +270,7 @@ def _rank(cam, shape, points, xy, cands: list, gate: float, pooled: float, opt, 
     # labelled by the search's convention among them. An independent
     # renderer's 6x6 grid with a corner missing: three such twins at one RMS
     # left 4 of 12 frames ambiguous)
-    twin = [bool(shape.symmetries) and same_pose(cam, shape, points, c, best) for c in cands[1:]]
+    twin = [bool(shape.perms) and same_pose(cam, shape, points, c, best) for c in cands[1:]]
     if any(twin):
         best = conventional(shape, points, best)
     # (a labelling a partial symmetry of the phantom relates to the best --

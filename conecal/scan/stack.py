@@ -106,6 +106,7 @@ class ProjectionStack:
             raise InputError(f"{self.path}: file not found")
         self._flat = self._dark = None
         self.dead_pixels = 0   # flat not brighter than dark (raw values)
+        self.field_mask = None  # pixels that see the beam (raw values; None: not known)
         if values == "raw":
             self._dark = _read_mean_image(Path(dark), self.shape)
             flat_img = _read_mean_image(Path(flat), self.shape)
@@ -129,6 +130,7 @@ class ProjectionStack:
             dead |= gain < _DIM_SHARE * np.percentile(gain[~dead], 90)
             gain[dead] = np.inf
             self.dead_pixels = int(dead.sum())
+            self.field_mask = ~dead
             self._flat = gain
 
     def __len__(self) -> int:
