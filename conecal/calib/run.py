@@ -225,7 +225,9 @@ def calibrate_free(scan, markers: dict, geometry, opt: FreeOptions = FreeOptions
     if opt.distortion == "auto":
         centred_alternative(final, fits, choice, obs, shape.points, radius, cam, opt.folds)
         restarted_alternative(final, fits, choice, obs, shape.points, radius, cam, opt.folds)
-    conv = sorted({fr["search"].convention for fr in frames if fr["search"].convention})
+    # (the conventions the ok frames were labelled by: a frame left ambiguous
+    # keeps the search's, which in_sequence replaced on the others)
+    conv = sorted({fr["search"].convention for fr in frames if fr["status"].ok and fr["search"].convention})
     return FreeResult(final.camera, final, frames, choice, shape, "; ".join(conv), fits, refinement, pinhole,
                       scales if rescaled else {})
 
