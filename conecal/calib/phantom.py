@@ -92,7 +92,7 @@ def describe_phantom(points, ids, plane_tol: float = 0.02, lattice_tol: float = 
     planar = len(P) >= 4 and float(np.abs((P - origin) @ n).max()) <= plane_tol * spacing
     shape = PhantomShape(P, np.asarray(ids), planar, origin, e1, e2, n, radius=radius)
     if not planar:
-        perms = [np.array(to) for to in point_maps(P) if -1 not in to]
+        perms = [p for p in (np.array(to) for to in point_maps(P) if -1 not in to) if _exact(P, p, spacing)]
         return PhantomShape(P, shape.ids, False, origin, e1, e2, n, radius=radius, perms=tuple(perms),
                             perm_names=tuple(_turn_name(P, p) for p in perms))
     q = shape.plane_xy
@@ -175,6 +175,19 @@ def _maps(key: bytes, n: int) -> tuple:
                         found.setdefault(to, None)
                     break   # one third sphere fixes the motion
     return tuple(found)
+
+
+# a whole symmetry of a 3-D phantom holds within this share of its spacing
+# (a file's rounding); one that holds only to the maps' tolerance (a tenth of
+# the spacing) moves spheres by what the data can see: another geometry
+_EXACT = 1e-3
+
+
+def _exact(points: np.ndarray, perm: np.ndarray, spacing: float) -> bool:
+    """Whether the rigid motion carrying ``points`` onto ``points[perm]``
+    holds within ``_EXACT`` of the spacing (mm) for every sphere."""
+    A, o = rigid_fit(points, points[perm])
+    return float(np.abs(points @ A.T + o - points[perm]).max()) <= _EXACT * spacing
 
 
 def _turn_name(points: np.ndarray, perm: np.ndarray) -> str:
