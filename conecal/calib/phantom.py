@@ -15,6 +15,7 @@ from dataclasses import dataclass, field
 from itertools import product
 
 import numpy as np
+from scipy.spatial import cKDTree
 
 from ..geometry import matrix_to_rotvec
 from .candidate import rigid_fit
@@ -149,31 +150,34 @@ def _maps(key: bytes, n: int) -> tuple:
     spacing = float(np.median(off.min(1)))
     tol = _SAME * spacing
     found: dict = {}
-    # each sphere with its nearest neighbour and the next nearest not on their line
+    tree = cKDTree(P)
+    # each sphere with its nearest neighbour and the next nearest (a triangle
+    # that fixes a motion), and the triangles a found motion already carries:
+    # refitted from each of its n triangles, a helix's every screw cost n^2
+    # nearest-sphere searches more (a 200-bead helix: 65 s)
     order = np.argsort(off, axis=1)
+    b_of, g_of = order[:, 0], order[:, 1]
+    covered: set = set()
     for a in range(n):
-        b = int(order[a, 0])
+        b, g = int(b_of[a]), int(g_of[a])
         for c in range(n):
             for e in np.flatnonzero(np.abs(D[c] - D[a, b]) < tol):
                 if (c, int(e)) == (a, b) or c == e:
                     continue
-                for g in order[a, 1:4]:
-                    if g == b:
+                h = np.flatnonzero((np.abs(D[c] - D[a, g]) < tol) & (np.abs(D[e] - D[b, g]) < tol))
+                for hh in h:
+                    if len({c, int(e), int(hh)}) < 3 or (a, c, int(e), int(hh)) in covered:
                         continue
-                    h = np.flatnonzero((np.abs(D[c] - D[a, g]) < tol) & (np.abs(D[e] - D[b, g]) < tol))
-                    for hh in h:
-                        if len({c, int(e), int(hh)}) < 3:
-                            continue
-                        R, o = rigid_fit(P[[a, b, g]], P[[c, int(e), int(hh)]])
-                        Q = P @ R.T + o
-                        d = np.linalg.norm(Q[:, None] - P[None], axis=-1)
-                        j = d.argmin(1)
-                        hit = d[np.arange(n), j] < 2 * tol
-                        if hit.sum() < max(5, _SHARE * n) or np.all(j[hit] == np.flatnonzero(hit)):
-                            continue
-                        to = tuple(int(j[i]) if hit[i] else -1 for i in range(n))
-                        found.setdefault(to, None)
-                    break   # one third sphere fixes the motion
+                    R, o = rigid_fit(P[[a, b, g]], P[[c, int(e), int(hh)]])
+                    d, j = tree.query(P @ R.T + o)
+                    hit = d < 2 * tol
+                    if hit.sum() < max(5, _SHARE * n) or np.all(j[hit] == np.flatnonzero(hit)):
+                        continue
+                    to = tuple(int(j[i]) if hit[i] else -1 for i in range(n))
+                    if to not in found:
+                        found[to] = None
+                        covered.update((k, to[k], to[b_of[k]], to[g_of[k]]) for k in range(n)
+                                       if min(to[k], to[b_of[k]], to[g_of[k]]) >= 0)
     return tuple(found)
 
 
