@@ -6,7 +6,7 @@ the frame is ambiguous, never a confident wrong name."""
 import numpy as np
 
 from conecal.calib.camera import Camera
-from conecal.calib.partial import partial_maps
+from conecal.calib.partial import carried_off, partial_maps
 from conecal.calib.phantom import describe_phantom
 from conecal.calib.search import search_frame
 from conecal.geometry import ConeGeometry, rotvec_to_matrix
@@ -148,7 +148,7 @@ def test_a_helix_frame_that_sees_its_end_is_not_tied_with_the_labelling_that_car
         xy = CAM.project(P[seen] @ R.T + t) + rng.normal(0, 0.03, (len(seen), 2))
         right = Candidate(np.arange(len(seen)), seen.copy(), R, t, 0.04)
         along = relabel(right, [i + 1 if i + 1 < len(P) else None for i in range(len(P))], P, "one along")
-        assert len(along.det) == len(seen) - 1 and sl._carried_off(shape, right, along)
+        assert len(along.det) == len(seen) - 1 and carried_off(shape, right, along)
         verdict = sl._rank(CAM, shape, P, xy, [right, along], 0.25, 0.05, FreeOptions())
         assert verdict is not None and not isinstance(verdict, sl.Tie), verdict.sentence
         assert np.array_equal(verdict[0].sph, seen[verdict[0].det])
@@ -156,7 +156,7 @@ def test_a_helix_frame_that_sees_its_end_is_not_tied_with_the_labelling_that_car
     assert decided == 8
     # a rival that explains a detection the best does not is no such rival
     other = Candidate(np.array([0, 1, 2, 3, 99]), np.array([12, 13, 14, 15, 16]), np.eye(3), np.zeros(3))
-    assert not sl._carried_off(shape, right, other)
+    assert not carried_off(shape, right, other)
     # nor a grid's rival: its turns are partial symmetries where a corner is missing
     g = np.array([[x, y, 0.0] for y in range(7) for x in range(7)])[1:] * 10.0
     grid = describe_phantom(g, np.arange(len(g)), radius=1.0)
@@ -164,4 +164,4 @@ def test_a_helix_frame_that_sees_its_end_is_not_tied_with_the_labelling_that_car
     full = Candidate(np.arange(20), np.arange(20), np.eye(3), np.zeros(3))
     turned = next(relabel(full, [None if v < 0 else v for v in to], g, "turned", 4) for to in partial_maps(g)
                   if relabel(full, [None if v < 0 else v for v in to], g, "turned", 4) is not None)
-    assert not sl._carried_off(grid, full, turned)
+    assert not carried_off(grid, full, turned)

@@ -80,3 +80,19 @@ def screw_tie(shape: PhantomShape, best: Candidate, c: Candidate) -> bool:
     phantom (:func:`related`) and explains as many detections (one fewer is
     the end bead the motion carries off: the end, seen, tells them apart)."""
     return shape.lattice is None and len(c.sph) >= len(best.sph) and related(shape.points, best, c)
+
+
+def carried_off(shape: PhantomShape, best: Candidate, c: Candidate) -> bool:
+    """Whether rival ``c`` is ``best`` moved by a partial symmetry of a 3-D
+    phantom that explains only detections ``best`` explains, and fewer: the
+    ones it leaves are where the motion carries spheres off the phantom (a
+    helix's end bead, seen), which ``best`` puts at the noise floor with the
+    calibrated camera (the second look). No tie then, whatever the unseen spheres (the third
+    renderer's coded helix: 28 against 27 spheres at 0.09 px, with small
+    beads undetected, left frames ambiguous). Not a grid's: its turns are
+    partial symmetries too where a corner is missing, and under a distortion
+    the model lacks the right name is the one that explains fewer (the
+    lattice's own rules judge those)."""
+    return (shape.lattice is None and len(c.det) < len(best.det)
+            and set(np.asarray(c.det).tolist()) <= set(np.asarray(best.det).tolist())
+            and related(shape.points, best, c))

@@ -41,7 +41,7 @@ from .bundle import Bundle
 from .candidate import Candidate
 from .lattice import TURNED, turned
 from .neighbours import by_neighbours, conventional, guesses, jumps, predicted, same_pose
-from .partial import SCREWED, moved_poses, partial_maps, related, screw_tie
+from .partial import SCREWED, carried_off, moved_poses, partial_maps, screw_tie
 from .refit import MSAC_CAP, msac, named_from, own_terms, refit, worse_by
 from .search import search_frame, unseen_spheres
 
@@ -278,7 +278,7 @@ def _rank(cam, shape, points, xy, cands: list, gate: float, pooled: float, opt, 
     # unseen spheres that tell them apart are undetected ones as often)
     tied = [c for c, tw in zip(cands[1:], twin)
             if (c.score >= best.score - 1 or screw_tie(shape, best, c)) and not _same(c, best) and not tw
-            and not _carried_off(shape, best, c)
+            and not carried_off(shape, best, c)
             and worse_by(cam, points, xy, c, best) / var < opt.mirror_chi2]
     if best.rms_px > opt.floor_factor * pooled:
         return None
@@ -306,22 +306,6 @@ def _rank(cam, shape, points, xy, cands: list, gate: float, pooled: float, opt, 
     if tied:
         return Tie(_tied(best, tied, "best "), [best] + tied, convention)
     return best, convention
-
-
-def _carried_off(shape, best: Candidate, c: Candidate) -> bool:
-    """Whether rival ``c`` is ``best`` moved by a partial symmetry of a 3-D
-    phantom that explains only detections ``best`` explains, and fewer: the
-    ones it leaves are where the motion carries spheres off the phantom (a
-    helix's end bead, seen), which ``best`` puts at the noise floor with the
-    calibrated camera. No tie then, whatever the unseen spheres (the third
-    renderer's coded helix: 28 against 27 spheres at 0.09 px, with small
-    beads undetected, left frames ambiguous). Not a grid's: its turns are
-    partial symmetries too where a corner is missing, and under a distortion
-    the model lacks the right name is the one that explains fewer (the
-    lattice's own rules judge those)."""
-    return (shape.lattice is None and len(c.det) < len(best.det)
-            and set(np.asarray(c.det).tolist()) <= set(np.asarray(best.det).tolist())
-            and related(shape.points, best, c))
 
 
 def _doubts(cam, points, xy, c: Candidate, mine: Candidate, n_mine: int, pooled: float) -> bool:
