@@ -98,24 +98,24 @@ def _conventional(points, perms, shape: PhantomShape, c: Candidate) -> Candidate
     return by_convention(twins, shape)
 
 
-def in_sequence(cam, shape: PhantomShape, frames: list) -> int:
+def in_sequence(cam, shape: PhantomShape, frames: list) -> None:
     """The ok frames (``frames`` in scan order, each with its ``search``
     result and perhaps ``pairs``) of a 3-D phantom with whole symmetries
     relabelled in turn, each among the poses its symmetry makes identical as
     the one nearest the ok frame before it (the first: the smallest turn),
-    in place; returns how many changed. Every labelling is right (the same
+    in place. Every labelling is right (the same
     image, the same calibration), but a reconstruction takes all frames'
     poses in one phantom frame: labelled one by one by the smallest turn, a
     sweep's poses jump by the symmetry (a cube's quarter turn, a helix's
     half turn) where it passes half of one. Grids keep their convention
     (normal towards the detector)."""
     if shape.planar or not shape.perms:
-        return 0
+        return
     perms, points = _relabellings(shape), shape.points
     sentence = (f"labelled in scan order, each frame as near as the phantom's symmetry allows to the ok frame "
                 f"before it (the first by the smallest turn), among the {len(perms)} poses the phantom's "
                 f"{len(perms) - 1} turns onto itself make identical")
-    last, changed = None, 0
+    last = None
     for fr in frames:
         c = fr["search"].best
         if not fr["status"].ok or c is None:
@@ -132,15 +132,12 @@ def in_sequence(cam, shape: PhantomShape, frames: list) -> int:
             k = next(i for i, w in enumerate(twins) if w is first)
         else:
             k = int(np.argmin([_miss(cam, points, perms[:1], w.R, w.t, last) for w in twins]))
-        if k:
-            changed += 1
-            if fr.get("pairs") is not None:
-                d, sph = fr["pairs"]
-                fr["pairs"] = (d, perms[k][np.asarray(sph, int)])
+        if k and fr.get("pairs") is not None:
+            d, sph = fr["pairs"]
+            fr["pairs"] = (d, perms[k][np.asarray(sph, int)])
         fr["search"] = replace(fr["search"], best=twins[k], convention=sentence)
         fr["sequenced"] = twins[k]
         last = (twins[k].R, twins[k].t)
-    return changed
 
 
 def conventional(shape: PhantomShape, points: np.ndarray, c: Candidate) -> Candidate:
