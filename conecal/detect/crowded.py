@@ -324,9 +324,14 @@ def measure_crowded(a: np.ndarray, kept: list[Blob], merged: list[Blob], opt: De
             seeds = [n for n, i in enumerate(g) if i in trial]
             tries = [(n, fit_group(ag, np.delete(s0, n, axis=0), opt.blur_px, noise, others, invalid, box=box,
                                    quadratic=quad)) for n in (seeds if len(seeds) <= _MAX_SEED_TRIES else [])]
-            tries = [(f[4], n) for n, f in tries if f is not None]
-            drop = [min(tries)[1]] if tries else seeds
-            fit = refit(s0, [n for n in range(len(g)) if n not in drop])
+            tries = [(f[4], n, f) for n, f in tries if f is not None]
+            best = min(tries, key=lambda t: t[0]) if tries else None
+            drop = [best[1]] if best else seeds
+            # (the try that won is that group's fit: refitted on the smaller group's
+            # own patch, a faint seed among its members could shrink to nothing and
+            # sink a fit whose other members were right; a large sphere with a small
+            # one touching it was lost so)
+            fit = best[2] if best else refit(s0, [n for n in range(len(g)) if n not in drop])
             g = dropped(g, drop)
         # a member never measured alone must earn its place in the joint fit
         while fit is not None and any(i in trial for i in g):
