@@ -27,6 +27,14 @@ nominal magnification 20 % off, a grid beside a plate's edge and an
 aluminium wedge on a flat panel, a grid under a local dent of the input
 screen, a cube's corners; per-frame cubic or tangent-twist distortion fields;
 glare beyond the intensifier's field in the flat).
+``--gen carm_images4``: a fourth, by a fourth helper session from the scan
+contract alone (a tilted flat panel with rectangular pixels, heel effect,
+scatter and beam hardening; barrel distortion with a per-frame turn and a
+smooth residual field in an elliptical field, lead letters; a chiral helix
+whose images are mirrored, where no frame can be ok; a dense two-size ball
+phantom under a sagging pincushion with wires, magnification 20 % off; a
+plain grid as control). Each printed row lists the frames it counts wrong or
+turned (``wrong_or_turned_frames``).
 
     python benchmarks/bench_images.py [--cases ball3d_ii grid_ii] [--seeds 1 2]
 """
@@ -123,7 +131,7 @@ def run_case(gen, name: str, seed: int, root: Path, reuse: bool = False) -> dict
     doc = free_document(res, FreeOptions(), {"format": "conecal-poses/1"})
     b = res.bundle
     n_ok = n_amb = wrong = turned = 0
-    held = []
+    held, wrong_frames = [], []
     for fr, f in zip(doc["frames"], res.frames):
         st = fr["status"]
         n_amb += st.startswith("ambiguous")
@@ -140,9 +148,11 @@ def run_case(gen, name: str, seed: int, root: Path, reuse: bool = False) -> dict
         to_ours = identity_map(fr, ids, scan.phantom)
         if to_ours is None:
             wrong += 1
+            wrong_frames.append(fr["frame"])
             continue
         if not whole_symmetry(to_ours, scan.phantom.positions):
             turned += 1     # right projections, the pose turned: wrong for a reconstruction
+            wrong_frames.append(fr["frame"])
         h = next(h for h in truth["heldout"] if h["frame"] == fr["frame"])
         if h["points"]:
             # (labelled by a symmetry of the phantom, the pose is the symmetric
@@ -164,7 +174,7 @@ def run_case(gen, name: str, seed: int, root: Path, reuse: bool = False) -> dict
                          for k, v in sorted(pulls.items())},
             "rms_px_by_flag": {k: round(float(np.sqrt(np.mean(np.square(v)))), 3) for k, v in sorted(by_flag.items())},
             "false": false, "frames": len(doc["frames"]), "ok": n_ok, "ambiguous": n_amb, "wrong_ok": wrong,
-            "turned_ok": turned,
+            "turned_ok": turned, "wrong_or_turned_frames": wrong_frames,
             "rms_fit_px": doc["summary"]["rms_px"], "family": doc["distortion"]["family"] if doc["distortion"] else
             "none", "heldout_rms_px": float(np.sqrt(np.mean(np.concatenate(held)))) if held else None,
             "time_detect_s": round(t_detect, 1), "time_fit_s": round(t_fit, 1)}
@@ -175,7 +185,7 @@ def main(argv=None) -> int:
     ap.add_argument("--cases", nargs="*")
     ap.add_argument("--seeds", type=int, nargs="*", default=[1])
     ap.add_argument("--work", type=Path, help="keep the cases here (default: a temporary folder)")
-    ap.add_argument("--gen", default="carm_images", help="renderer module in benchmarks/ (carm_images, carm_images2, carm_images3)")
+    ap.add_argument("--gen", default="carm_images", help="renderer module in benchmarks/ (carm_images, carm_images2, carm_images3, carm_images4)")
     ap.add_argument("--reuse", action="store_true",
                     help="with --work: fit the markers an earlier run left there (no rendering, no detect)")
     a = ap.parse_args(argv)
