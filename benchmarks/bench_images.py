@@ -71,7 +71,9 @@ def _match(markers: list, centres: list):
     for i, m in enumerate(markers):
         d = np.hypot(T[:, 0] - m["x"], T[:, 1] - m["y"])
         j = int(np.argmin(d))
-        if d[j] < 0.5 * centres[j]["diameter_px"] and j not in used:
+        # (a renderer may give a shadow cut by the field's edge the centroid of its
+        # visible part, up to a radius from the sphere's own centre)
+        if d[j] < (1.0 if centres[j].get("truncated") else 0.5) * centres[j]["diameter_px"] and j not in used:
             used.add(j)
             out[i] = j
     return out

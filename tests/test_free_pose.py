@@ -504,3 +504,24 @@ def test_frames_the_first_search_missed_are_identified_with_the_calibrated_camer
         k = f["frame"]
         turn = np.degrees(np.linalg.norm(matrix_to_rotvec(res.bundle.R[f["slot"]] @ T.R[k].T)))
         assert turn < 0.5, (k, turn)
+
+
+def test_a_mirrored_recording_of_a_3d_phantom_fails_and_says_mirrored(tmp_path):
+    """Images written left-right flipped (as many C-arm consoles do), the scan
+    saying nothing of it: no rigid pose explains a 3-D phantom's mirror image,
+    so the fit fails (exit 1, no poses written), and the error says that the
+    columns reversed calibrate. The same markers unflipped calibrate."""
+    from conecal.calib.mirrored import mirrored_markers, planar
+
+    d, mdoc, sc = _free_scan(tmp_path, phantom="balls", distortion="none", n=8, seed=3)
+    assert not planar(sc.phantom[1])
+    flipped = mirrored_markers(mdoc, SHAPE[1])
+    back = mirrored_markers(flipped, SHAPE[1])               # its own inverse
+    assert all(np.isclose(a["x"], b["x"], atol=1e-9) and a["y"] == b["y"]
+               for fa, fb in zip(back["frames"], mdoc["frames"]) for a, b in zip(fa["markers"], fb["markers"]))
+    (tmp_path / "m.json").write_text(json.dumps(flipped))
+    r = CliRunner().invoke(cli, ["fit-pose", str(d), "--markers", str(tmp_path / "m.json"), "-o",
+                                 str(tmp_path / "p.json")])
+    assert r.exit_code == 1 and not (tmp_path / "p.json").exists(), r.output
+    assert "mirrored left-right" in r.output and "8/8 frames calibrate" in r.output, r.output
+    assert planar(np.c_[np.random.default_rng(0).normal(size=(9, 2)), np.zeros(9)])

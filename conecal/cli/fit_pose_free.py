@@ -11,9 +11,10 @@ from .. import __version__
 from ..calib.bundle import FAMILIES
 from ..calib.camera import INTRINSIC_UNITS
 from ..calib.document import free_document
+from ..calib.mirrored import mirror_hint, planar
 from ..calib.run import FreeOptions, calibrate_free
 from ..documents.status import reason_lines
-from ..errors import InputError
+from ..errors import FitError, InputError
 from ..geometry import ConeGeometry
 from ..jsonio import read_json, rounded, write_json
 from .options import info, progress_bar
@@ -56,8 +57,17 @@ def run_free(s, scan, mdoc, markers, geometry, output, max_rms, distortion, fram
     opt = FreeOptions(max_rms_px=max_rms if max_rms is not None else FreeOptions.max_rms_px, distortion=distortion,
                       frame_intrinsics=fi,
                       phantom_sigma_mm=phantom_sigma if phantom_sigma is not None else FreeOptions.phantom_sigma_mm)
-    with progress_bar("fit-pose (pose search)") as prog:
-        res = calibrate_free(s, mdoc, g, opt, progress=prog, say=info)
+    try:
+        with progress_bar("fit-pose (pose search)") as prog:
+            res = calibrate_free(s, mdoc, g, opt, progress=prog, say=info)
+    except FitError as exc:
+        if planar(s.phantom.positions):
+            raise
+        info("trying the markers with the images' columns reversed (a mirrored display?)")
+        hint = mirror_hint(s, mdoc, g, opt, calibrate_free)
+        if hint is None:
+            raise
+        raise FitError(f"{exc}; {hint}") from None
     header = {"format": POSES_FORMAT, "software": f"conecal {__version__}", "scan": str(scan),
               "markers_from": str(markers), "geometry_from": str(geometry) if geometry else "nominal"}
     if output != "-":   # diagnose finds the markers from the result's folder, whatever the cwd
