@@ -525,3 +525,29 @@ def test_a_mirrored_recording_of_a_3d_phantom_fails_and_says_mirrored(tmp_path):
     assert r.exit_code == 1 and not (tmp_path / "p.json").exists(), r.output
     assert "mirrored left-right" in r.output and "8/8 frames calibrate" in r.output, r.output
     assert planar(np.c_[np.random.default_rng(0).normal(size=(9, 2)), np.zeros(9)])
+
+
+def test_a_family_a_fold_cannot_fit_is_not_chosen_and_the_choice_goes_on(tmp_path, monkeypatch):
+    """A scan of a few frames: a fold of the richest family's held-out test
+    leaves fewer residuals than parameters (an independent dense ball
+    phantom's 3 identified frames: "32 residuals for 35 free parameters"
+    ended the whole calibration). Such a family is not scored, so not
+    chosen; the others are, and the calibration stands."""
+    from conecal.calib import choose
+    from conecal.errors import FitError
+
+    d, mdoc, sc = _free_scan(tmp_path, n=6, seed=4)
+    s = load_scan(d)
+    richest = max(FAMILIES, key=lambda f: choose.n_params(f, 6)).name
+    real = choose.adjust
+
+    def adjust(family, *a, **k):
+        if family.name == richest:
+            raise FitError("32 residuals for 35 free parameters: too few observations")
+        return real(family, *a, **k)
+
+    monkeypatch.setattr(choose, "adjust", adjust)
+    res = calibrate_free(s, mdoc, s.nominal_geometry())
+    rows = {r["family"]: r for r in res.choice}
+    assert not rows[richest]["chosen"] and "not scored" in rows[richest]["why"]
+    assert sum(r["chosen"] for r in res.choice) == 1 and all(f["status"].ok for f in res.frames)

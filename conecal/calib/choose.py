@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from ..errors import FitError
 from ..stats import mostly_behind, not_worse, paired_behind
 from .bundle import FAMILIES, Bundle, Family, Observations, adjust
 
@@ -38,8 +39,14 @@ def heldout_scores(family: Family, full: Bundle, obs: Observations, points, radi
         train = obs.subset(~test)
         if len(np.unique(train.slot)) < F:
             continue
-        b = adjust(family, full.camera, train, points, radius, full.R, full.t, start=full, passes=1, max_nfev=30,
-                   covariance=False)
+        try:
+            b = adjust(family, full.camera, train, points, radius, full.R, full.t, start=full, passes=1, max_nfev=30,
+                       covariance=False)
+        except FitError:
+            # (more parameters than a fold leaves markers, as on a scan of a few
+            # frames: the family is not tested, and so not chosen; a whole
+            # calibration of 3 frames failed on a fold of its richest family)
+            continue
         pred = b.predict(b.phantom(points)[obs.sph[test]], obs.slot[test], radius)
         r2[test] = np.sum((pred - obs.xy[test]) ** 2, 1) / sigma_eff[test] ** 2
     return r2
@@ -128,6 +135,7 @@ def choose_family(fits: dict, obs: Observations, points, radius, n_folds: int = 
         if f is not pick and f.name in ok:
             row["behind_chosen_chi2"], row["behind_se"] = paired_behind(ok[f.name], ok[pick.name])
         elif f.name not in ok:
-            row["why"] = "a frame lost all its markers in a fold: not scored"
+            row["why"] = ("a frame lost all its markers in a fold, or a fold left fewer markers than the family's "
+                          "parameters: not scored")
         rows.append(row)
     return pick, rows
