@@ -324,15 +324,11 @@ def measure_crowded(a: np.ndarray, kept: list[Blob], merged: list[Blob], opt: De
             seeds = [n for n, i in enumerate(g) if i in trial]
             tries = [(n, fit_group(ag, np.delete(s0, n, axis=0), opt.blur_px, noise, others, invalid, box=box,
                                    quadratic=quad)) for n in (seeds if len(seeds) <= _MAX_SEED_TRIES else [])]
-            tries = [(f[4], n, f) for n, f in tries if f is not None]
-            best = min(tries, key=lambda t: t[0]) if tries else None
-            drop = [best[1]] if best else seeds
-            # (the try that won is that group's fit: refitted on the smaller group's
-            # own patch, a faint seed among its members could shrink to nothing and
-            # sink a fit whose other members were right; a large sphere with a small
-            # one touching it was lost so)
-            fit = best[2] if best else refit(s0, [n for n in range(len(g)) if n not in drop])
-            g = dropped(g, drop)
+            # (the winning try is the group's fit: refitted on its own smaller patch, a faint seed
+            # could collapse and sink it; a large sphere and a small one touching it were lost so)
+            best = min([(f[4], n, f) for n, f in tries if f is not None], key=lambda t: t[0], default=None)
+            fit = best[2] if best else refit(s0, [n for n in range(len(g)) if n not in seeds])
+            g = dropped(g, [best[1]] if best else seeds)
         # a member never measured alone must earn its place in the joint fit
         while fit is not None and any(i in trial for i in g):
             drop = _unearned(ag, fit[1], [n for n, i in enumerate(g) if i in trial], fit[0], opt, noise, others,
