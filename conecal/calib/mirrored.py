@@ -39,14 +39,15 @@ def mirrored_markers(markers: dict, cols: int) -> dict:
                                   for f in markers["frames"]]}
 
 
-def mirror_hint(scan, markers: dict, geometry, opt, calibrate) -> str | None:
+def mirror_hint(scan, markers: dict, geometry, opt, calibrate, say=lambda s: None) -> str | None:
     """After ``calibrate(scan, markers, geometry, opt)`` (the free-pose fit)
     failed: a sentence saying the images look mirrored, with the mirrored
     fit's numbers, when the same markers with columns reversed calibrate with
     most frames ok; else None (also for a planar phantom, where the mirror
-    cannot be told)."""
+    cannot be told, and which is not tried). ``say(line)``: feedback."""
     if scan.phantom is None or planar(scan.phantom.positions):
         return None
+    say("trying the markers with the images' columns reversed (a mirrored display?)")
     try:
         res = calibrate(scan, mirrored_markers(markers, scan.config.detector.cols), geometry, opt)
     except FitError:

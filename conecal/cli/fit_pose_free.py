@@ -11,7 +11,7 @@ from .. import __version__
 from ..calib.bundle import FAMILIES
 from ..calib.camera import INTRINSIC_UNITS
 from ..calib.document import free_document
-from ..calib.mirrored import mirror_hint, planar
+from ..calib.mirrored import mirror_hint
 from ..calib.run import FreeOptions, calibrate_free
 from ..documents.status import reason_lines
 from ..errors import FitError, InputError
@@ -61,10 +61,7 @@ def run_free(s, scan, mdoc, markers, geometry, output, max_rms, distortion, fram
         with progress_bar("fit-pose (pose search)") as prog:
             res = calibrate_free(s, mdoc, g, opt, progress=prog, say=info)
     except FitError as exc:
-        if planar(s.phantom.positions):
-            raise
-        info("trying the markers with the images' columns reversed (a mirrored display?)")
-        hint = mirror_hint(s, mdoc, g, opt, calibrate_free)
+        hint = mirror_hint(s, mdoc, g, opt, calibrate_free, say=info)
         if hint is None:
             raise
         raise FitError(f"{exc}; {hint}") from None
