@@ -297,19 +297,34 @@ def _xy(mdoc, frame):
     return np.array([[m["x"], m["y"]] for m in f["markers"]], float)
 
 
-def identity_map(fr: dict, true_ids: list, phantom):
+def identity_map(fr: dict, true_ids: list, phantom, either: dict | None = None):
     """The rigid map carrying the spheres conecal named onto the ones that
     were there, as a function of true phantom coordinates (n, 3) mm to
     conecal's labelling's, when it holds within 0.05 mm (the ids are right up
-    to a symmetry of the phantom); else None."""
+    to a symmetry of the phantom); else None.
+
+    ``either``: detection index -> ids of every sphere whose centre lies in
+    that marker's shadow. A marker on two or more shadows nearly on top of
+    each other is either sphere: it is left out of the map's fit and must
+    then name, through the map, one of the spheres it covers (a frame named
+    by a symmetry names such a marker by the symmetric sphere, not by the
+    true one)."""
     pos = dict(zip(phantom.ids.tolist(), phantom.positions))
-    est, true = [], []
+    est, true, loose = [], [], []
     for det, sid in fr["matched"]:
         tid = true_ids[det]
+        cover = (either or {}).get(det, ())
+        if len(cover) > 1:
+            loose.append((sid, cover))
+            continue
+        if tid is None and len(cover) == 1:
+            tid = next(iter(cover))    # its sphere's truth went to a nearer marker
         if tid is None:
             return None        # a spurious detection taken for a sphere
         est.append(pos[sid])
         true.append(pos[int(tid)])
+    if len(est) < 3:
+        return None
     A, B = np.array(est), np.array(true)
     a, b = A - A.mean(0), B - B.mean(0)
     U, _, Vt = np.linalg.svd(a.T @ b)
@@ -317,6 +332,10 @@ def identity_map(fr: dict, true_ids: list, phantom):
     R = (U @ D @ Vt).T
     if float(np.abs(a @ R.T - b).max()) >= 0.05:
         return None
+    for sid, cover in loose:
+        back = (pos[sid] - A.mean(0)) @ R + B.mean(0)     # the true sphere the name stands for
+        if min(np.linalg.norm(back - pos[c]) for c in cover) >= 0.05:
+            return None
     return lambda H: (np.asarray(H) - B.mean(0)) @ R + A.mean(0)
 
 

@@ -142,12 +142,11 @@ def run_case(gen, name: str, seed: int, root: Path, reuse: bool = False) -> dict
         n_ok += 1
         # a marker on two shadows nearly on top of each other (flagged overlap,
         # sigma their half-separation) is either sphere: the name fit-pose gave
-        # it is right if it is one of them
-        ids = list(true_ids[fr["frame"]])
-        for d, sid in fr.get("matched", []):
-            if sid in either.get((fr["frame"], d), ()):
-                ids[d] = sid
-        to_ours = identity_map(fr, ids, scan.phantom)
+        # it is right if it is one of them, through the symmetry the frame was
+        # named by
+        k = fr["frame"]
+        cover = {d: either.get((k, d), set()) for d, _ in fr.get("matched", [])}
+        to_ours = identity_map(fr, true_ids[k], scan.phantom, cover)
         if to_ours is None:
             wrong += 1
             wrong_frames.append(fr["frame"])
