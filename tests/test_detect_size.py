@@ -8,7 +8,9 @@ import yaml
 from click.testing import CliRunner
 
 from conecal.cli.main import cli
-from conecal.detect.size import KEEP_WITHIN, size_ratio
+from conecal.detect import DetectOptions
+from conecal.detect.options import Blob
+from conecal.detect.size import KEEP_WITHIN, measured_size, second_size, size_ratio
 from conecal.simulate import rotation_scan, write_scan
 
 
@@ -34,6 +36,28 @@ def test_shadows_of_one_declared_size_keep_the_typed_magnification():
     p = np.array([9.64, 12.86])
     s = size_ratio(np.full(12, 9.64), p)
     assert abs(s - 1) < 0.01
+
+
+def test_a_phantom_of_two_bead_sizes_declared_by_one_is_looked_for_at_both():
+    # a coded helix of 1.6 and 3.2 mm beads whose scan.yaml declares 1.6 mm:
+    # the larger class sets the measured scale, the smaller must stay in range
+    rng = np.random.default_rng(5)
+    typed = np.array([6.1])
+    d = np.concatenate([_measured(rng, typed * 1.05, 10), _measured(rng, typed * 2.0, 18)])
+    s = size_ratio(d, typed)
+    s2 = second_size(d, typed, s)
+    assert s2 is not None and abs(np.log(min(s, s2) / 1.0)) < 0.1 and abs(np.log(max(s, s2) / 1.91)) < 0.1
+    blobs = [Blob(x=float(10 * i), y=0.0, radius=float(r / 2), sigma=0.05, mu_px=0.05, peak=0.3, anisotropy=1.0,
+                  flags=[], snr=50.0)
+             for i, r in enumerate(d)]
+    opt = measured_size(blobs, DetectOptions(diameter_px=(0.6 * 6.1, 1.6 * 6.1), shadow_px=(6.1,)))
+    assert len(opt.shadow_px) == 2 and opt.diameter_px[0] < 5.6 and 12.8 < opt.diameter_px[1]
+    # one class, wherever its scale: no second size, one range
+    one = _measured(rng, typed * 1.8, 28)
+    assert second_size(one, typed, size_ratio(one, typed)) is None
+    # a few shadows of another size (a phantom's two large beads among 16): not a class
+    few = np.concatenate([_measured(rng, typed, 24), _measured(rng, typed * 2.0, 3)])
+    assert second_size(few, typed, size_ratio(few, typed)) is None
 
 
 def _scan_yaml_with(path, factor: float) -> None:

@@ -5,6 +5,7 @@ from __future__ import annotations
 import click
 
 from ..detect import detect_scan, options_for_scan
+from ..detect.pipeline import scan_options
 from ..jsonio import write_json
 from ..parts import selected_frames
 from ..scan import load_scan
@@ -60,25 +61,36 @@ def command(scan, output, workers, threshold, blur_px, diameter_px, lag, frame_r
         with progress_bar("detect") as prog:
             opt, results = measure_frames(s, opt, idx, workers=workers, lag=lag, progress=prog)
         write_json(output, {**part_document(s, opt, idx, results, lag), "scan": str(scan)})
-        _say_size(opt.size_scale, opt.diameter_px)
+        _say_size(opt, s)
         info(f"wrote {output}: a part, frames {idx[0]}..{idx[-1]} ({len(idx)} frames, {sum(map(len, results))} "
              f"blobs); join the parts with conecal merge")
         return
+    # (the noise and the shadow size measured once, here, to be told below;
+    # detect_scan takes the measured options as they are)
+    opt = scan_options(s, opt)
     with progress_bar("detect") as prog:
         doc = detect_scan(s, opt, workers=workers, lag=lag, progress=prog)
     write_json(output, {**doc, "scan": str(scan)})
-    _say_size(doc["options"]["size_scale"], doc["options"]["diameter_px"])
+    _say_size(opt, s)
     n = sum(len(f["markers"]) for f in doc["frames"])
     flagged = sum(1 for f in doc["frames"] for m in f["markers"] if m["flags"])
     info(f"wrote {output}: {n} markers in {len(doc['frames'])} frames ({flagged} flagged), {doc['n_ids']} identities")
 
 
-def _say_size(s: float, diameter_px) -> None:
+def _say_size(opt, scan) -> None:
     """Tell the user when the shadows were not the size the nominal
-    magnification says (measured over nominal ``s``) and were looked for at
-    the measured size (``diameter_px``, px)."""
+    magnification says (``opt.size_scale``: measured over nominal) or fell
+    in more size classes than ``markers`` declares, and were looked for at
+    the measured sizes (``opt.diameter_px``, px)."""
     from ..detect.size import rescaled
 
-    if rescaled(s):
-        info(f"the shadows measure {s:.2f}x the size markers.diameter and the nominal magnification give "
-             f"(sdd/sod off, or another sphere size?): looked for {diameter_px[0]:.1f}-{diameter_px[1]:.1f} px")
+    lo, hi = opt.diameter_px
+    m = scan.config.markers
+    declared = len(set(m.diameters or (m.diameter,))) if m is not None else 0
+    if declared and len(opt.shadow_px) > declared:
+        info(f"the shadows fall in {len(opt.shadow_px)} size classes ("
+             + ", ".join(f"{d:.1f}" for d in opt.shadow_px) + " px) where markers.diameter declares "
+             f"{declared} (a phantom of two bead sizes?): looked for {lo:.1f}-{hi:.1f} px")
+    elif rescaled(opt.size_scale):
+        info(f"the shadows measure {opt.size_scale:.2f}x the size markers.diameter and the nominal magnification "
+             f"give (sdd/sod off, or another sphere size?): looked for {lo:.1f}-{hi:.1f} px")

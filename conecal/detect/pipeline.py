@@ -340,8 +340,8 @@ def _frame_radius(res: list) -> float:
 def assemble(scan: Scan, opt: DetectOptions, frames_idx: list[int], results: list[list]) -> dict:
     """The markers document from every frame's blobs: scan-wide contrast
     filter, identities across frames, frames in log order."""
-    ds = (scan.config.markers.diameters or (scan.config.markers.diameter,)) if scan.config.markers else (1.0,)
-    results, ref = scan_filter(results, opt, min(ds) / max(ds))
+    # (the declared sizes at the measured scale, and a second size class measured)
+    results, ref = scan_filter(results, opt, min(opt.shadow_px) / max(opt.shadow_px) if opt.shadow_px else 1.0)
     results, gain = with_gain_sigma(results, opt)
     robot = scan.config.motion in ("robot", "free")
     # A robot re-places the holder with mm-level jumps between frames, and free
