@@ -22,7 +22,7 @@ ROOT = Path(__file__).resolve().parents[1]
 
 # bottom to top; each row may import from the rows above it in this list only
 LAYERS = [
-    ["errors", "stats"],                      # plain values and numbers
+    ["errors", "stats", "jit"],               # plain values, numbers, compiled loops
     ["binding", "geometry"],                  # documents' base model; projection geometry
     ["kinematics"],                           # chains of geometry
     ["scan"],                                 # the scan contract (YAML, frames)

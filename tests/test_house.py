@@ -33,3 +33,25 @@ def test_the_mad_to_sigma_factor_is_written_once():
     hits = [str(p.relative_to(ROOT)) for p in (ROOT / "conecal").rglob("*.py")
             if re.search(r"1\.4826", p.read_text())]
     assert hits == ["conecal/stats.py"], hits
+
+
+def test_numba_caches_go_to_the_users_cache_not_beside_the_sources(tmp_path):
+    """A compiled kernel's cache lands under $XDG_CACHE_HOME/conecal/numba (the installed package
+    directory is not written to), and a user's NUMBA_CACHE_DIR is left to win."""
+    import os
+    import subprocess
+    import sys
+
+    code = ("import numpy as np\n"
+            "from conecal.detect.kernels import _outside_all\n"
+            "_outside_all(0, 0, np.zeros(1), np.zeros(1), np.zeros(1))\n"
+            "from numba import config; print(config.CACHE_DIR)\n")
+    env = {k: v for k, v in os.environ.items() if k != "NUMBA_CACHE_DIR"}
+    env["XDG_CACHE_HOME"] = str(tmp_path / "xdg")
+    out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, check=True)
+    assert Path(out.stdout.strip()) == tmp_path / "xdg" / "conecal" / "numba"
+    assert list((tmp_path / "xdg").rglob("kernels._outside_all-*.nbi"))
+    env["NUMBA_CACHE_DIR"] = str(tmp_path / "mine")
+    out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, check=True)
+    assert Path(out.stdout.strip()) == tmp_path / "mine"
+    assert list((tmp_path / "mine").rglob("kernels._outside_all-*.nbi"))

@@ -7,7 +7,7 @@ themselves. Units: px, mm."""
 from __future__ import annotations
 
 import numpy as np
-from numba import njit
+from ..jit import njit
 
 from ..geometry import matrix_to_rotvec, rotvec_to_matrix
 from .camera import Camera

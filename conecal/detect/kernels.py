@@ -9,7 +9,7 @@ the background polynomial is in offsets from the centre it was fitted at.
 from __future__ import annotations
 
 import numpy as np
-from numba import njit
+from ..jit import njit
 from ..stats import MAD_TO_SIGMA
 from .profile_kernels import profile_fit
 

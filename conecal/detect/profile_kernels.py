@@ -9,7 +9,7 @@ offsets from the patch's centre (px); values: attenuation.
 from __future__ import annotations
 
 import numpy as np
-from numba import njit
+from ..jit import njit
 
 
 @njit(cache=True)
