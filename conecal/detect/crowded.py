@@ -30,7 +30,7 @@ from .overlap import (components, fit_group, group_box, groups_of, joint_sigma, 
                       render_box)
 from .size import like_neighbours, nearest_shadows, size_classes, typical_sphere
 from .pairs import elongation_bound, fit_covered, fit_lost, hidden_pairs, is_pair, unsplit_pair
-from .split import peaks_in, split
+from .split import grow_group, peaks_in, split
 
 # A joint model's centre that no centroid confirms (a seed, a split part, or a
 # shadow whose centroid cannot be had beside its neighbours) is off by more
@@ -358,6 +358,15 @@ def measure_crowded(a: np.ndarray, kept: list[Blob], merged: list[Blob], opt: De
             ref = [b for b in kept if not b.flags] or kept
             if not ref or not like_neighbours(R, mu, nearest_shadows(x, y, ref), sized=False):
                 fit = None
+        if fit is not None and len(g) >= 2 and mu0 is not None and only is None:
+            # (spheres the group's peaks left out: each added member is measured as a split's part is)
+            fit = grow_group(ag, fit, R1, mu1, mu0, opt.blur_px, noise, max(opt.noise_kappa, 1.0), others, invalid,
+                             quad, len(g))
+            for x, y, R, mu in fit[1][len(g):]:
+                blobs.append(Blob(float(x), float(y), float(R), 0.0, float(mu), 0.0, 1.0, ["overlap"], 0.0))
+                out.append(blobs[-1])
+                new.add(len(blobs) - 1)
+                g = g + [len(blobs) - 1]
         if fit is None:
             for i in g:
                 writes[i] = (None, False) if i in new else (replace(blobs[i], flags=sorted(set(blobs[i].flags)
