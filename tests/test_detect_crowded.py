@@ -329,7 +329,7 @@ def test_weak_peaks_chain_into_seeds_only_through_shadows_or_strong_peaks():
     """Crowd seeds: unaccounted peaks within touching reach (here 20.5 px) of
     a shadow measured alone, or of a peak linked to one; a link between two
     weak peaks carries nothing (a spine's edges raised a 34-member group)."""
-    from conecal.detect.crowded import _crowd_seeds
+    from conecal.detect.seeds import crowd_seeds as _crowd_seeds
     from conecal.detect.options import Blob
 
     opt = DetectOptions(diameter_px=(7.2, 19.2), blur_px=1.0)

@@ -26,10 +26,10 @@ from .background import fit_profile, structured
 from .centre import model_centre
 from .edge import CONE_OFFSET_PX, beside_edge
 from .rod import on_rods, rod_like, run_on
-from .overlap import (components, fit_group, group_box, groups_of, joint_sigma, member_views, neighbours,
-                      render_box)
+from .overlap import fit_group, group_box, groups_of, joint_sigma, member_views, neighbours, render_box
 from .size import like_neighbours, nearest_shadows, size_classes, typical_sphere
 from .pairs import elongation_bound, fit_covered, fit_lost, hidden_pairs, is_pair, unsplit_pair
+from .seeds import crowd_seeds
 from .split import grow_group, peaks_in, split
 
 # A joint model's centre that no centroid confirms (a seed, a split part, or a
@@ -77,7 +77,7 @@ def detect_frame(a: np.ndarray, opt: DetectOptions) -> list[Blob]:
     # (a spoilt one too: its neighbour is what spoilt it)
     deep = [b for b in kept + spoilt if mu1 is not None and b.mu_px * b.radius**3 > 1.4 * mu1 * R1**3
             and (b.anisotropy > _DEEP_ANISOTROPY or b.mu_px > _DEEP_DENSITY * mu1)]
-    seeds = _crowd_seeds(peaks, kept, R1, opt, strong)
+    seeds = crowd_seeds(peaks, kept, R1, opt, strong)
     # a peak as strong as a sphere's that no window measured (a textured
     # background left the window's moment negative, or its size off): the
     # joint model measures it alone, where it must earn its place as any seed
@@ -123,37 +123,6 @@ def detect_frame(a: np.ndarray, opt: DetectOptions) -> list[Blob]:
     out = fit_covered(a, out, opt, noise, invalid, peaks, R1, mu1)
     # a shadow that stands apart: its centre from its fitted model, 2-3x surer than its centroid (.centre)
     return [model_centre(a, b, opt, noise, invalid, neighbours(b, out, peaks, opt), (R1, mu1)) for b in out]
-
-
-def _crowd_seeds(peaks, kept: list[Blob], R1: float, opt: DetectOptions, strong=None) -> list:
-    """Candidate peaks (x, y) that no shadow measured alone accounts for and
-    that lie within touching reach of another shadow or such peak: shadows
-    spoilt by a neighbour, to be measured with it (one per 0.8 R1). A chain
-    of such peaks counts only when it reaches a shadow or holds a peak among
-    ``strong`` (default all: as strong as a sphere's); weak peaks touching
-    only each other are noise on a broad blot."""
-    free: list = []
-    for px, py in peaks:
-        if any((px - b.x) ** 2 + (py - b.y) ** 2 < (0.8 * b.radius) ** 2 for b in kept):
-            continue
-        if any((px - q[0]) ** 2 + (py - q[1]) ** 2 < (0.8 * R1) ** 2 for q in free):
-            continue
-        free.append((px, py))
-    reach = window_reach(R1, R1, opt.blur_px)
-    pts = free + [(b.x, b.y) for b in kept]
-    real = [strong is None or p in strong for p in free] + [True] * (len(pts) - len(free))
-    touching, links = set(), []
-    for i in range(len(free)):
-        for j in range(i + 1, len(pts)):
-            if (pts[i][0] - pts[j][0]) ** 2 + (pts[i][1] - pts[j][1]) ** 2 < reach**2:
-                touching |= {i, j}
-                # (two weak peaks do not carry a chain: over a spine's edges one
-                # weak peak touches the next across the whole frame)
-                if real[i] or real[j]:
-                    links.append((i, j))
-    comp = components(len(pts), links)
-    anchored = {comp[i] for i in range(len(pts)) if real[i]}
-    return [p for i, p in enumerate(free) if i in touching and comp[i] in anchored]
 
 
 def _unearned(a, sph: np.ndarray, idx: list, box, opt: DetectOptions, noise: float, others, invalid, chi2: float,
@@ -362,11 +331,13 @@ def measure_crowded(a: np.ndarray, kept: list[Blob], merged: list[Blob], opt: De
             # (spheres the group's peaks left out: each added member is measured as a split's part is)
             fit = grow_group(ag, fit, R1, mu1, mu0, opt.blur_px, noise, max(opt.noise_kappa, 1.0), others, invalid,
                              quad, len(g))
-            for x, y, R, mu in fit[1][len(g):]:
-                blobs.append(Blob(float(x), float(y), float(R), 0.0, float(mu), 0.0, 1.0, ["overlap"], 0.0))
-                out.append(blobs[-1])
-                new.add(len(blobs) - 1)
-                g = g + [len(blobs) - 1]
+            extra = list(range(len(blobs), len(blobs) + len(fit[1]) - len(g)))
+            # (in place: the groups' indices and the closure's lists stay theirs)
+            blobs.extend(Blob(float(x), float(y), float(R), 0.0, float(mu), 0.0, 1.0, ["overlap"], 0.0)
+                         for x, y, R, mu in fit[1][len(g):])
+            out.extend(blobs[len(out):])
+            new.update(extra)
+            g = g + extra
         if fit is None:
             for i in g:
                 writes[i] = (None, False) if i in new else (replace(blobs[i], flags=sorted(set(blobs[i].flags)

@@ -22,7 +22,7 @@ import numpy as np
 from ..stats import mad_sigma
 from .frame import moment_trace
 from .overlap import disc_misfit, fit_group, group_box, joint_sigma, neighbours
-from .ring import ring_mask
+from .ring import ring_level
 from .rod import line_of, run_on
 from .size import class_radius, declared_radii, nearest_shadows, size_class, size_ratio
 from .split import ADEQUATE
@@ -98,10 +98,9 @@ _SUSPECT_ATTENUATION = 1.25
 # ... or, with no lone shadow of its size class, this many times
 # the frame's contrast per px of chord (the helix's pair of large beads 1.31)
 _SUSPECT_DENSITY = 1.15
-# the system's blur is known to about this fraction: parts nearly on top of each
-# other trade their spacing for it at no cost in misfit (two large beads 0.3 of
-# a diameter apart beside a third moved 0.2-0.5 px for 25 %, chi-square within
-# 10 %; the fit read one 0.75 px off at σ 0.15), so their σ holds that move
+# the system's blur is known to about this fraction: parts nearly on top of each other
+# trade their spacing for it at no cost in misfit (two large beads 0.3 of a diameter
+# apart beside a third: 0.2-0.5 px for 25 %, chi-square within 10 %), so σ holds it
 _BLUR_DOUBT = 0.25
 
 
@@ -271,7 +270,7 @@ def hidden_pairs(a: np.ndarray, blobs: list, blur: float, shadow_px=(), depth_ra
     background of about its level hold the line."""
     if len(blobs) < 8:
         return blobs
-    level = np.array([_ring_level(a, b, blobs, blur) for b in blobs])
+    level = np.array([ring_level(a, b, blobs, blur) for b in blobs])
     dens = np.log(np.array([max(b.mu_px, 1e-12) for b in blobs]))
     ok = np.isfinite(level) & np.array([b.mu_px > 0 for b in blobs])
     if ok.sum() < 8:
@@ -488,21 +487,3 @@ def _rod_part(a: np.ndarray, sph: np.ndarray, blur: float, invalid) -> bool:
     t = (sph[:, :2] - c) @ u
     # (along its own best direction: a sphere lying on the wire pulls the parts' line off it by 15 degrees)
     return any(run_on(a, sph[i:i + 1], blur, invalid).runs_on() for i in {int(np.argmin(t)), int(np.argmax(t))})
-
-
-def _ring_level(a: np.ndarray, b, blobs: list, blur: float) -> float:
-    """The background's level (attenuation) about blob ``b``: the median of a
-    3 px ring just outside its shadow, other shadows left out; nan when
-    fewer than 8 pixels remain."""
-    r0 = b.radius + 2 * blur + 1
-    r1 = r0 + 3
-    rows, cols = a.shape
-    c0, c1 = max(int(b.x - r1), 0), min(int(b.x + r1) + 2, cols)
-    q0, q1 = max(int(b.y - r1), 0), min(int(b.y + r1) + 2, rows)
-    if c1 <= c0 or q1 <= q0:
-        return float("nan")
-    ring = ring_mask((q1 - q0, c1 - c0), b.x - c0, b.y - q0, r0, r1,
-                     [(o.x - c0, o.y - q0, o.radius + 2 * blur + 1) for o in blobs if o is not b])
-    v = a[q0:q1, c0:c1][ring]
-    v = v[np.isfinite(v)]
-    return float(np.median(v)) if v.size >= 8 else float("nan")

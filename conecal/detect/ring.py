@@ -28,3 +28,21 @@ def ring_mask(shape: tuple[int, int], x: float, y: float, r0: float, r1: float, 
     if invalid is not None and invalid.shape == ring.shape:
         ring &= ~invalid
     return ring
+
+
+def ring_level(a: np.ndarray, b, blobs: list, blur: float) -> float:
+    """The background's level (attenuation) about blob ``b``: the median of a
+    3 px ring just outside its shadow, other shadows left out; nan when
+    fewer than 8 pixels remain."""
+    r0 = b.radius + 2 * blur + 1
+    r1 = r0 + 3
+    rows, cols = a.shape
+    c0, c1 = max(int(b.x - r1), 0), min(int(b.x + r1) + 2, cols)
+    q0, q1 = max(int(b.y - r1), 0), min(int(b.y + r1) + 2, rows)
+    if c1 <= c0 or q1 <= q0:
+        return float("nan")
+    ring = ring_mask((q1 - q0, c1 - c0), b.x - c0, b.y - q0, r0, r1,
+                     [(o.x - c0, o.y - q0, o.radius + 2 * blur + 1) for o in blobs if o is not b])
+    v = a[q0:q1, c0:c1][ring]
+    v = v[np.isfinite(v)]
+    return float(np.median(v)) if v.size >= 8 else float("nan")

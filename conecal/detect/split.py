@@ -122,13 +122,9 @@ def _grow(a, m, R1, mu1, mu0, ratio, blur, noise, kappa, mask_out, invalid, keep
     best, steps = None, []
     while len(fit[1]) < min(_MAX_PARTS, int(np.ceil(ratio)) + 1):
         _, sph, _, bg, chi2, n = fit
-        resid = (a[q0:q1, c0:c1] - group_model(box, sph, bg, blur)) * wgt
-        score = cv2.filter2D(resid.astype(np.float32), -1, disc, borderType=cv2.BORDER_CONSTANT)
         # the next part inside the blob or touching a part found: beyond, the
         # residual's peak is a wall's or a neighbour's, and a part started there wanders off
-        score[~_within(xx, yy, m, reach, sph, R1)] = -np.inf
-        iy, ix = np.unravel_index(int(np.argmax(score)), score.shape)
-        new = np.array([[c0 + ix, q0 + iy, R1, mu0]])
+        new = np.array([[*_residual_peak(a, fit, blur, wgt, disc, _within(xx, yy, m, reach, sph, R1)), R1, mu0]])
         start = np.vstack([sph, new])
         start[:, 2] = np.minimum(start[:, 2], 1.3 * R1)
         starts = [start]
@@ -174,8 +170,7 @@ def _grow(a, m, R1, mu1, mu0, ratio, blur, noise, kappa, mask_out, invalid, keep
     plausible = bool(np.all(_plausible(best, R1, mu1)))
     adequate = plausible and fit[4] / fit[5] <= ADEQUATE
     if plausible and not adequate:
-        on, off = disc_misfit(a, fit, blur, noise, mask_out, invalid)
-        adequate = on <= max(ADEQUATE, off if np.isfinite(off) else 0.0)
+        adequate = _misfit_over(a, fit, blur, noise, mask_out, invalid) <= 1.0
     if keep_inadequate:
         return best, adequate
     return best if adequate else None
@@ -193,31 +188,22 @@ def grow_group(a, fit, R1: float, mu1, mu0: float, blur: float, noise: float, ka
     A grid's row seen edge-on, seven shadows a third overlapping, had
     candidate peaks for four: its fit misfitted 33x the noise, the
     centres 2-5 px off at σ 0.5. The added spheres are its last members;
-    unless they bring the misfit down to ``ADEQUATE`` (or that around), as a
-    split's parts must, none is added (an intensifier's profile, which no
+    unless they bring the misfit down to ``ADEQUATE`` (or that around,
+    :func:`_misfit_over`), as a split's parts must, none is added (an intensifier's profile, which no
     sphere model follows to the noise, had a sphere added between three,
     its neighbours moved 2.4-3.7 px)."""
-    added, first = 0, fit
-    on, off = disc_misfit(a, fit, blur, noise, mask_out, invalid)
-    if on <= _LEFT_OUT * max(ADEQUATE, off if np.isfinite(off) else 0.0):
+    if _misfit_over(a, fit, blur, noise, mask_out, invalid) <= _LEFT_OUT:
         return fit
-    disc = _disc(R1)
-    while added < most:
-        on, off = disc_misfit(a, fit, blur, noise, mask_out, invalid)
-        if on <= max(ADEQUATE, off if np.isfinite(off) else 0.0):
-            return fit
+    first, disc = fit, _disc(R1)
+    for _ in range(most):
         box, sph, _, bg, chi2, n = fit
         c0, q0, c1, q1 = box
         wgt = mask_weights(box, mask_out, blur, invalid)
-        resid = (a[q0:q1, c0:c1] - group_model(box, sph, bg, blur)) * wgt
-        score = cv2.filter2D(resid.astype(np.float32), -1, disc, borderType=cv2.BORDER_CONSTANT)
         yy, xx = np.mgrid[q0:q1, c0:c1]
-        near = np.zeros(score.shape, bool)
+        near = np.zeros(wgt.shape, bool)
         for x, y, R, _ in sph:
             near |= (xx - x) ** 2 + (yy - y) ** 2 <= (R + R1) ** 2
-        score[~near] = -np.inf
-        iy, ix = np.unravel_index(int(np.argmax(score)), score.shape)
-        start = np.vstack([sph, [[c0 + ix, q0 + iy, R1, mu0]]])
+        start = np.vstack([sph, [[*_residual_peak(a, fit, blur, wgt, disc, near), R1, mu0]]])
         nxt = fit_group(a, start, blur, noise, mask_out, invalid, box=box, quadratic=quadratic)
         if nxt is None:
             break
@@ -230,9 +216,29 @@ def grow_group(a, fit, R1: float, mu1, mu0: float, blur: float, noise: float, ka
                 or np.min(gaps) < _BESIDE):
             break
         fit = nxt
-        added += 1
+        if _misfit_over(a, fit, blur, noise, mask_out, invalid) <= 1.0:
+            return fit
+    return first
+
+
+def _misfit_over(a, fit, blur: float, noise: float, mask_out, invalid) -> float:
+    """A joint fit's misfit on its discs (:func:`disc_misfit`) over what
+    explains them: ``ADEQUATE``, or the misfit around them where more."""
     on, off = disc_misfit(a, fit, blur, noise, mask_out, invalid)
-    return fit if on <= max(ADEQUATE, off if np.isfinite(off) else 0.0) else first
+    return on / max(ADEQUATE, off if np.isfinite(off) else 0.0)
+
+
+def _residual_peak(a, fit, blur: float, wgt, disc, allowed) -> tuple[float, float]:
+    """Where (x, y frame px) the matched filter ``disc`` peaks on what the
+    joint ``fit`` leaves of ``a`` (pixels weighed by ``wgt``), among the
+    ``allowed`` pixels of its patch: the next sphere's start."""
+    box, sph, _, bg, _, _ = fit
+    c0, q0, c1, q1 = box
+    resid = (a[q0:q1, c0:c1] - group_model(box, sph, bg, blur)) * wgt
+    score = cv2.filter2D(resid.astype(np.float32), -1, disc, borderType=cv2.BORDER_CONSTANT)
+    score[~allowed] = -np.inf
+    iy, ix = np.unravel_index(int(np.argmax(score)), score.shape)
+    return float(c0 + ix), float(q0 + iy)
 
 
 def _halves(sph: np.ndarray, R1: float, mu0: float) -> list:
