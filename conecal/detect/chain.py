@@ -69,9 +69,26 @@ def weighted_moments(w: np.ndarray, xx: np.ndarray, yy: np.ndarray):
     return x, y, cov
 
 
-def chain_like(radius: float, anisotropy: float, widest: float, max_anisotropy: float) -> bool:
-    """Whether a rough blob may be a short chain of touching shadows:
-    elongated beyond a sphere (``max_anisotropy``; three in a line read up
-    to 3.8), and no wider than ``widest`` px, two of the largest spheres' radii
-    (a wall or a plate's end is wider)."""
-    return radius <= widest and max_anisotropy < anisotropy < 4.5
+def chain_like(radius: float, anisotropy: float, widest: float, max_anisotropy: float, blur: float = 0.0) -> bool:
+    """Whether a rough blob (:func:`rough_blob`'s radius px and anisotropy)
+    may be a chain of touching shadows: a short one elongated beyond a
+    sphere (``max_anisotropy``; three in a line read up to 3.8) and no
+    wider than ``widest`` px, two of the largest spheres' radii (a wall or
+    a plate's end is wider); or a longer one (a grid's row of seven seen
+    edge-on read 4.5-7) across which it is no wider than one of the largest
+    spheres (its minor axis's radius, in :func:`rough_blob`'s convention,
+    at most ``widest`` / 2; blur ``blur`` px). A wire's length passes too:
+    the split's parts are tested for being a rod's."""
+    if radius <= widest and max_anisotropy < anisotropy < 4.5:
+        return True
+    if not 4.5 <= anisotropy <= _LONGEST or not np.isfinite(radius):
+        return False
+    # radius^2 = 2.5 (1.5 (M1 + M2) - 2 blur^2 - 2/12), per axis the same with one moment
+    both = (radius**2 / 2.5 + 2 * blur**2 + 2 / 12) / 1.5
+    minor = 5 * (1.5 * both / (1 + anisotropy**2) - blur**2 - 1 / 12)
+    return bool(0 < minor <= (widest / 2) ** 2)
+
+
+# the longest chain a rough blob is taken for (a row of ten spheres a third
+# overlapping reads about 9)
+_LONGEST = 10.0

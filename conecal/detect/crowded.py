@@ -30,7 +30,7 @@ from .overlap import fit_group, group_box, groups_of, joint_sigma, member_views,
 from .size import like_neighbours, nearest_shadows, size_classes, typical_sphere
 from .pairs import elongation_bound, fit_covered, fit_lost, hidden_pairs, is_pair, unsplit_pair
 from .seeds import crowd_seeds
-from .split import grow_group, peaks_in, split
+from .split import LONG_CHAIN, grow_group, peaks_in, split_all
 
 # A joint model's centre that no centroid confirms (a seed, a split part, or a
 # shadow whose centroid cannot be had beside its neighbours) is off by more
@@ -81,7 +81,10 @@ def detect_frame(a: np.ndarray, opt: DetectOptions) -> list[Blob]:
     # a peak as strong as a sphere's that no window measured (a textured
     # background left the window's moment negative, or its size off): the
     # joint model measures it alone, where it must earn its place as any seed
-    taken = [(b.x, b.y, max(b.radius, R1)) for b in kept + merged + spoilt] + [(x, y, R1) for x, y in seeds]
+    # (a long chain's blob covers its strong peaks only along its axis: should
+    # its split fail, they are the seeds that measure it)
+    taken = [(b.x, b.y, max(b.radius, R1) if b.anisotropy < LONG_CHAIN else R1) for b in kept + merged + spoilt] + \
+        [(x, y, R1) for x, y in seeds]
     for px, py in strong:
         if all((px - x) ** 2 + (py - y) ** 2 >= r * r for x, y, r in taken):
             seeds.append((px, py))
@@ -167,13 +170,11 @@ def measure_crowded(a: np.ndarray, kept: list[Blob], merged: list[Blob], opt: De
     classes = size_classes(kept, opt.shadow_px, R1)
     seeds = list(seeds)
     parts, gone, singles, unsplit = [], set(), [], []
+
+    split_of = split_all(a, [*merged, *deep], classes, mu1, opt.blur_px, noise, opt.noise_kappa, invalid, peaks,
+                         lambda m: neighbours(m, [*kept, *merged, *deep, *around], peaks, opt, 1.5 * m.radius + 2, 1.2 * R1))
     for m in list(merged) + list(deep):
-        near = neighbours(m, [*kept, *merged, *deep, *around], peaks, opt, 1.5 * m.radius + 2, 1.2 * R1)
-        found = None
-        for Rc in classes:
-            found = split(a, m, Rc, mu1, opt.blur_px, noise, opt.noise_kappa, near, invalid, peaks)
-            if found is not None:
-                break
+        near, found = split_of[id(m)]
         if found is None:
             is_deep = any(m is d for d in deep)
             # two shadows nearly on top of each other that no split separates

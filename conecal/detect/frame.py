@@ -43,7 +43,7 @@ from .ring import keep_out
 def _rough_blob(a: np.ndarray, cx: float, cy: float, r: float, blur: float, noise: float, opt: DetectOptions):
     """A strong peak no window measured, as a rough blob when it may be a chain (:mod:`.chain`), else None."""
     f = rough_blob(a, cx, cy, r, blur, noise)
-    ok = f is not None and chain_like(f["radius"], f["anisotropy"], opt.diameter_px[1], opt.max_anisotropy)
+    ok = f is not None and chain_like(f["radius"], f["anisotropy"], opt.diameter_px[1], opt.max_anisotropy, blur)
     return Blob(**f) if ok else None
 
 
@@ -375,13 +375,15 @@ def detect_blobs(a: np.ndarray, opt: DetectOptions):
         if any((cx - b.x) ** 2 + (cy - b.y) ** 2 < b.radius**2 for b in blobs + merged):
             continue
         b = refine(a, cx, cy, r_guess, opt, [(o.x, o.y, o.radius) for o in blobs], noise, invalid)
-        if (b is None or not np.isfinite(b.anisotropy)) and h > 3 * opt.threshold:
+        chain = (b is None or not np.isfinite(b.anisotropy)) and h > 3 * opt.threshold
+        if chain:
             # a chain of touching shadows across a wall seen end-on: no background
             # ring to be had for one sphere's window (or one whose second moments
-            # come out negative: no shape); its extent, to be split
+            # come out negative: no shape); its extent, to be split (however
+            # long: :func:`.chain.chain_like` judged its width)
             b = _rough_blob(a, cx, cy, r_guess, opt.blur_px, noise, opt)
         # (clutter allowed: the neighbours that make a cluster disturb its background)
-        if b is not None and b.snr >= opt.min_snr and b.anisotropy < 3.0 and "truncated" not in b.flags:
+        if b is not None and b.snr >= opt.min_snr and (chain or b.anisotropy < 3.0) and "truncated" not in b.flags:
             merged.append(b)   # never a marker by itself: split into spheres or dropped
     spoilt = []
     for b in blobs:
@@ -400,7 +402,8 @@ def detect_blobs(a: np.ndarray, opt: DetectOptions):
     # a strong peak with no background to be had (a plate's edge across its
     # annulus): handed on as a spoilt blob of the expected size, unmeasured
     for cx, cy in failed:
-        if any((cx - b.x) ** 2 + (cy - b.y) ** 2 < b.radius**2 for b in blobs):
+        # (one chain's strong peaks are one blob: a row of seven was split five times over)
+        if any((cx - b.x) ** 2 + (cy - b.y) ** 2 < b.radius**2 for b in blobs + merged):
             continue
         # (one that is elongated is a chain, to be split like a merged blob)
         rough = _rough_blob(a, cx, cy, r_guess, opt.blur_px, noise, opt)

@@ -29,6 +29,11 @@ from .overlap import background_basis, disc_misfit, fit_group, group_box, group_
 # energy: a real shadow's is most of it (0.5-1 for overlaps up to 60 %)
 _EARN = 0.15
 _MAX_PARTS = 6
+# ... and in a long chain (a grid's row seen edge-on holds seven; allowed
+# in any blob, a dense ball phantom's pair came out as three, two on one sphere)
+_MAX_CHAIN = 9
+# the split parts that give a frame with no shadow alone its spheres' contrast
+_CONTRAST_PARTS = 3
 # a sphere added to a group lies at least this fraction of the radii's sum
 # from each member (a grid's row seen edge-on: 0.67-0.8; pairs a split
 # cannot separate: 0.3-0.4)
@@ -40,6 +45,8 @@ _BESIDE = 0.5
 # pair of large beads beside a third: 1.4; a chain of three on a tube: 2.0)
 _LEFT_OUT = 3.0
 ADEQUATE = 4.0   # chi2 per pixel, in units of the pixel noise's variance
+# a blob this elongated is a long chain, its parts started at once (:func:`_long_chain`)
+LONG_CHAIN = 4.0
 
 
 def peaks_in(m, peaks) -> list:
@@ -66,7 +73,7 @@ def split(a: np.ndarray, m, R1: float, mu1, blur: float, noise: float, kappa: fl
     ratio = m.mu_px * m.radius**3 / (mu1 * R1**3) if mu1 is not None else 2.0
     # (a blob whose background was disturbed holds some of what disturbed it: a
     # tube's wall under three touching spheres read 6.7 spheres' attenuation)
-    most = max(_MAX_PARTS + 0.6, 3.6 * len(inside)) * (2 if "clutter" in m.flags else 1)
+    most = max(_parts_cap(m) + 0.6, 3.6 * len(inside)) * (2 if "clutter" in m.flags else 1)
     if not 1.4 <= ratio <= most:
         return None
     mu0 = mu1 if mu1 is not None else m.mu_px
@@ -99,6 +106,44 @@ def split(a: np.ndarray, m, R1: float, mu1, blur: float, noise: float, kappa: fl
     return None
 
 
+def split_all(a: np.ndarray, ms: list, classes, mu1, blur: float, noise: float, kappa: float, invalid, peaks,
+              near_of) -> dict:
+    """Blobs ``ms`` each :func:`split` (tried at each sphere radius of
+    ``classes`` px, the first that splits it): id(blob) -> (the shadows
+    around it, ``near_of(blob)``; the split or None). With no shadow
+    measured alone (``mu1`` None: a grid's rows seen edge-on, every sphere
+    overlapping) the splits that explained their blobs give the frame's
+    contrast, with which the others are split again: without it a split may
+    hold only twice one sphere's attenuation (a row of seven came out in
+    threes, most of it lost); a long chain waits for that contrast."""
+    def splits(group: list, mu) -> dict:
+        out = {}
+        for m in group:
+            near, found = near_of(m), None
+            for Rc in classes:
+                found = split(a, m, Rc, mu, blur, noise, kappa, near, invalid, peaks)
+                if found is not None:
+                    break
+            out[id(m)] = near, found
+        return out
+
+    split_of = splits([m for m in ms if mu1 is not None or m.anisotropy < LONG_CHAIN], mu1)
+    if mu1 is None:
+        wait = [m for m in ms if id(m) not in split_of]
+        mus = [p[3] for _, f in split_of.values() if f is not None for p in f[0]]
+        if len(mus) >= _CONTRAST_PARTS:
+            again = wait + [m for m in ms if id(m) in split_of and split_of[id(m)][1] is None]
+            split_of.update(splits(again, float(np.median(mus))))
+        else:
+            split_of.update(splits(wait, None))
+    return split_of
+
+
+def _parts_cap(m) -> int:
+    """The most spheres blob ``m`` is split into: more in a long chain."""
+    return _MAX_CHAIN if m.anisotropy >= LONG_CHAIN else _MAX_PARTS
+
+
 def _plausible(sph: np.ndarray, R1: float, mu1) -> np.ndarray:
     """Which spheres (k, 4) have the frame's size (0.6-1.6 ``R1``) and contrast (0.5-2 ``mu1``)."""
     ok = (sph[:, 2] > 0.6 * R1) & (sph[:, 2] < 1.6 * R1)
@@ -120,7 +165,11 @@ def _grow(a, m, R1, mu1, mu0, ratio, blur, noise, kappa, mask_out, invalid, keep
     yy, xx = np.mgrid[q0:q1, c0:c1]
     disc = _disc(R1)
     best, steps = None, []
-    while len(fit[1]) < min(_MAX_PARTS, int(np.ceil(ratio)) + 1):
+    if m.anisotropy >= LONG_CHAIN and mu1 is not None:
+        whole = _long_chain(a, fit, box, wgt, m, R1, mu0, ratio, blur, noise, kappa, mask_out, invalid, reach, quadratic)
+        if whole is not None:
+            return (whole, True) if keep_inadequate else whole
+    while len(fit[1]) < min(_parts_cap(m), int(np.ceil(ratio)) + 1):
         _, sph, _, bg, chi2, n = fit
         # the next part inside the blob or touching a part found: beyond, the
         # residual's peak is a wall's or a neighbour's, and a part started there wanders off
@@ -174,6 +223,33 @@ def _grow(a, m, R1, mu1, mu0, ratio, blur, noise, kappa, mask_out, invalid, keep
     if keep_inadequate:
         return best, adequate
     return best if adequate else None
+
+
+def _long_chain(a, fit, box, wgt, m, R1: float, mu1: float, ratio: float, blur: float, noise: float, kappa: float,
+                mask_out, invalid, reach: float, quadratic: bool) -> np.ndarray | None:
+    """A long chain's parts (k, 4) started at once along its axis
+    (:func:`_axis_chain`), for the k its attenuation holds (``ratio``) and
+    one either side, the k that BIC prefers (the growth's bar per sphere);
+    None unless those parts are the frame's spheres (:func:`_plausible`)
+    and explain the blob (as :func:`_grow` asks). A grid's row of seven
+    seen edge-on grown one sphere at a time took seven steps of several
+    fits each (2-3 s a row)."""
+    bg = fit[3]
+    best, score = None, np.inf
+    for k in range(max(int(round(ratio)) - 1, 2), min(int(round(ratio)) + 1, _MAX_CHAIN) + 1):
+        start = _axis_chain(a, box, bg, quadratic, wgt, m, R1, mu1, k)
+        f = None if start is None else fit_group(a, start, blur, noise, mask_out, invalid, box=box, quadratic=quadratic)
+        # (a part that swelled faint over the background is no sphere: an eighth on a row of seven)
+        if f is None or not _anchored(f[1], m, reach, R1) or not np.all(_plausible(f[1], R1, mu1)):
+            continue
+        sc = f[4] / kappa + (4 * np.log(f[5]) + 10) * k
+        if sc < score:
+            best, score = f, sc
+    if best is None:
+        return None
+    if best[4] / best[5] > ADEQUATE and _misfit_over(a, best, blur, noise, mask_out, invalid) > 1.0:
+        return None
+    return best[1]
 
 
 def grow_group(a, fit, R1: float, mu1, mu0: float, blur: float, noise: float, kappa: float, mask_out, invalid,

@@ -1,0 +1,70 @@
+"""Rows of overlapping spheres seen edge-on (a grid at a steep tilt): no
+sphere stands alone, so the frame's contrast and the rows' splits come from
+the rows themselves. Units: px, attenuation."""
+
+import numpy as np
+import pytest
+
+from conecal.detect import DetectOptions, detect_frame
+from conecal.detect.noise import noise_pixel
+
+
+def _chains(seed: int):
+    """Three rows of seven spheres (R 7.5 px) a third to a quarter of a
+    diameter overlapping, a grid's rows seen nearly edge-on, with no sphere
+    standing alone: (frame, centres (21, 2) px)."""
+    from benchmarks.bench_two_sizes import frame
+
+    rng = np.random.default_rng(seed)
+    sph = []
+    for y0 in (50.0, 130.0, 210.0):
+        ang, step = np.radians(rng.uniform(5, 20)), rng.uniform(10.0, 11.5)
+        for i in range(7):
+            c = np.array([60.0, y0]) + i * step * np.array([np.cos(ang), np.sin(ang)]) + rng.normal(0, 0.2, 2)
+            sph.append([*c, 7.5 * rng.uniform(0.97, 1.03), 0.02])
+    return frame(sph, rng, shape=(260, 200), noise=0.003), np.array(sph)[:, :2]
+
+
+@pytest.mark.parametrize("seed", [0, 3])
+def test_a_chain_with_fewer_peaks_than_spheres_grows_its_group(seed):
+    """A grid's row seen edge-on gave candidate peaks for four of its seven
+    shadows: the group's joint fit misfitted 6-33x the noise and put centres
+    between the spheres, 2-5 px off at σ 0.04-0.5 (an independent renderer's
+    flat panel at 80° tilt). Spheres the group left out are now added where
+    its residual holds them: every measured centre within 3 σ (or 0.3 px),
+    and more of them measured."""
+    a, truth = _chains(seed)
+    blobs = detect_frame(a, DetectOptions(diameter_px=(9, 24), pixel_noise=noise_pixel(a), shadow_px=(15.0,)))
+    found = 0
+    for p in truth:
+        b = min(blobs, key=lambda b: np.hypot(b.x - p[0], b.y - p[1]))
+        e = np.hypot(b.x - p[0], b.y - p[1])
+        if e < 3.75:
+            found += 1
+            assert e < max(0.3, 3 * b.sigma), (p, e, b)
+    assert found >= 14
+
+
+def _measured(seed: int):
+    """(centres measured within 3.75 px of a truth, those off by more than
+    max(0.3 px, 3 σ)) on :func:`_chains` ``seed``."""
+    a, truth = _chains(seed)
+    blobs = detect_frame(a, DetectOptions(diameter_px=(9, 24), pixel_noise=noise_pixel(a), shadow_px=(15.0,)))
+    found = off = 0
+    for p in truth:
+        b = min(blobs, key=lambda b: np.hypot(b.x - p[0], b.y - p[1]))
+        e = np.hypot(b.x - p[0], b.y - p[1])
+        found += e < 3.75
+        off += 0.3 < e < 3.75 and e > 3 * b.sigma
+    return found, off
+
+
+@pytest.mark.parametrize("seed", [5, 9])
+def test_whole_rows_seen_edge_on_are_split_into_their_spheres(seed):
+    """A row of seven whose rough blob reads 4.5-7 times longer than wide
+    was dropped as a rod at the candidate stage, and with no sphere
+    measured alone a split could hold only twice one sphere's attenuation:
+    one row in three was lost whole (14 of 21 found on these seeds; an
+    independent renderer's flat panel at 80° tilt lost 39 of 96). Every
+    sphere is now measured, each within 3 σ (or 0.3 px)."""
+    assert _measured(seed) == (21, 0)
