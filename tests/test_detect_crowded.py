@@ -580,7 +580,8 @@ def test_a_seed_left_out_keeps_the_fit_the_try_without_it_had(monkeypatch):
         return real(a, spheres, *args, box=box, **kw)
 
     monkeypatch.setattr(crowded, "fit_group", fit_group)
-    monkeypatch.setattr(crowded, "split", lambda *a, **k: None)   # (the blob is no split's)
+    from conecal.detect import split as split_module
+    monkeypatch.setattr(split_module, "split", lambda *a, **k: None)   # (the blob is no split's)
     opt = DetectOptions(diameter_px=(5.0, 18.0), blur_px=1.0, shadow_px=(7.2, 15.6))   # two sizes declared
     blob = Blob(80.0, 79.0, 9.0, 0.0, 0.03, 0.0, 1.4, ["clutter"], 0.6)
     seeds = [(74.0, 71.0), (88.0, 95.0)]
