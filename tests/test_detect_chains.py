@@ -68,3 +68,30 @@ def test_whole_rows_seen_edge_on_are_split_into_their_spheres(seed):
     independent renderer's flat panel at 80° tilt lost 39 of 96). Every
     sphere is now measured, each within 3 σ (or 0.3 px)."""
     assert _measured(seed) == (21, 0)
+
+
+def test_a_rows_start_follows_its_own_axis_beside_parallel_rows():
+    """A long chain's parts are started along the axis of its second
+    moments, taken over a circle that reaches the neighbouring rows of a
+    grid seen edge-on: their moments turned the start across the rows and
+    the joint fit diverged (3 of 5 rows of a flat-panel frame fell back to
+    growing one sphere at a time). The start now rests on the row's own
+    shadow: each part within 1.5 px of its sphere."""
+    from benchmarks.bench_two_sizes import frame
+    from conecal.detect.options import Blob
+    from conecal.detect.overlap import group_box
+    from conecal.detect.split import _axis_chain
+
+    rng = np.random.default_rng(2)
+    along, across = np.array([np.cos(np.radians(30)), np.sin(np.radians(30))]), np.array([-0.5, np.cos(np.radians(30))])
+    centre = np.array([130.0, 130.0])
+    rows = [[centre + j * 40 * across + (i - 3) * 10.0 * along for i in range(7)] for j in (-1, 0, 1)]
+    a = frame([[*p, 7.5, 0.02] for row in rows for p in row], rng, shape=(260, 260), noise=0.003)
+    m = Blob(float(centre[0]), float(centre[1]), 35.0, 0.0, 0.02, 0.0, 6.0, ["clutter"], 50.0)
+    box = group_box(a.shape, np.array([[m.x, m.y, 1.5 * m.radius + 2, 0.0]]), 1.0)
+    start = _axis_chain(a, box, np.array([0.35, 0.0, 0.0]), False, np.ones((box[3] - box[1], box[2] - box[0])),
+                        m, 7.5, 0.02, 7)
+    assert start is not None
+    truth = np.array(rows[1])
+    order = np.argsort(start[:, :2] @ along)
+    assert np.max(np.hypot(*(start[order, :2] - truth).T)) < 1.5

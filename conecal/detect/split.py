@@ -166,9 +166,16 @@ def _grow(a, m, R1, mu1, mu0, ratio, blur, noise, kappa, mask_out, invalid, keep
     disc = _disc(R1)
     best, steps = None, []
     if m.anisotropy >= LONG_CHAIN and mu1 is not None:
-        whole = _long_chain(a, fit, box, wgt, m, R1, mu0, ratio, blur, noise, kappa, mask_out, invalid, reach, quadratic)
+        whole, seed = _long_chain(a, fit, box, wgt, m, R1, mu0, ratio, blur, noise, kappa, mask_out, invalid, reach,
+                                  quadratic)
         if whole is not None:
             return (whole, True) if keep_inadequate else whole
+        # (growing a row of eight from one sphere again took eight steps of
+        # several fits each, 2-3 s; from the start's spheres, one or two)
+        if seed is not None:
+            fit = seed
+            best = fit[1]
+            steps.append(fit)
     while len(fit[1]) < min(_parts_cap(m), int(np.ceil(ratio)) + 1):
         _, sph, _, bg, chi2, n = fit
         # the next part inside the blob or touching a part found: beyond, the
@@ -226,30 +233,41 @@ def _grow(a, m, R1, mu1, mu0, ratio, blur, noise, kappa, mask_out, invalid, keep
 
 
 def _long_chain(a, fit, box, wgt, m, R1: float, mu1: float, ratio: float, blur: float, noise: float, kappa: float,
-                mask_out, invalid, reach: float, quadratic: bool) -> np.ndarray | None:
+                mask_out, invalid, reach: float, quadratic: bool) -> tuple:
     """A long chain's parts (k, 4) started at once along its axis
     (:func:`_axis_chain`), for the k its attenuation holds (``ratio``) and
-    one either side, the k that BIC prefers (the growth's bar per sphere);
-    None unless those parts are the frame's spheres (:func:`_plausible`)
-    and explain the blob (as :func:`_grow` asks). A grid's row of seven
+    one either side, the k that BIC prefers (the growth's bar per sphere):
+    (parts, None) when those parts are the frame's spheres (:func:`_plausible`)
+    and explain the blob (as :func:`_grow` asks); else (None, the fit the
+    growth goes on from: that k's, or the spheres of the start that held
+    most, refitted; None when no start held two). A grid's row of seven
     seen edge-on grown one sphere at a time took seven steps of several
     fits each (2-3 s a row)."""
     bg = fit[3]
-    best, score = None, np.inf
+    best, score, seed = None, np.inf, (0, None)
     for k in range(max(int(round(ratio)) - 1, 2), min(int(round(ratio)) + 1, _MAX_CHAIN) + 1):
         start = _axis_chain(a, box, bg, quadratic, wgt, m, R1, mu1, k)
         f = None if start is None else fit_group(a, start, blur, noise, mask_out, invalid, box=box, quadratic=quadratic)
+        if f is None or not _anchored(f[1], m, reach, R1):
+            continue
         # (a part that swelled faint over the background is no sphere: an eighth on a row of seven)
-        if f is None or not _anchored(f[1], m, reach, R1) or not np.all(_plausible(f[1], R1, mu1)):
+        ok = _plausible(f[1], R1, mu1)
+        if ok.sum() > seed[0]:
+            seed = int(ok.sum()), f
+        if not np.all(ok):
             continue
         sc = f[4] / kappa + (4 * np.log(f[5]) + 10) * k
         if sc < score:
             best, score = f, sc
-    if best is None:
-        return None
-    if best[4] / best[5] > ADEQUATE and _misfit_over(a, best, blur, noise, mask_out, invalid) > 1.0:
-        return None
-    return best[1]
+    if best is not None and (best[4] / best[5] <= ADEQUATE
+                             or _misfit_over(a, best, blur, noise, mask_out, invalid) <= 1.0):
+        return best[1], None
+    if best is None and seed[1] is not None and seed[0] >= 2:
+        # the spheres of the start that came closest, refitted without its strays
+        f = seed[1]
+        best = fit_group(a, f[1][_plausible(f[1], R1, mu1)], blur, noise, mask_out, invalid, box=box,
+                         quadratic=quadratic)
+    return None, best
 
 
 def grow_group(a, fit, R1: float, mu1, mu0: float, blur: float, noise: float, kappa: float, mask_out, invalid,
@@ -395,6 +413,7 @@ def _axis_chain(a, box, bg, quadratic: bool, wgt, m, R1: float, mu0: float, k: i
     yy, xx = np.mgrid[q0:q1, c0:c1]
     p = (a[q0:q1, c0:c1] - (background_basis(h, w, quadratic) @ bg).reshape(h, w)) * wgt
     p = np.where((xx - m.x) ** 2 + (yy - m.y) ** 2 <= (m.radius + R1 * k) ** 2, np.maximum(p, 0.0), 0.0)
+    p = p * _own_shadow(p, m.x - c0, m.y - q0, m.radius, 0.5 * R1 * mu0)
     W = float(p.sum())
     if W <= 0:
         return None
@@ -406,6 +425,22 @@ def _axis_chain(a, box, bg, quadratic: bool, wgt, m, R1: float, mu0: float, k: i
     e = evec[:, 1]
     off = (np.arange(k) - (k - 1) / 2) * s
     return np.column_stack([cx + off * e[0], cy + off * e[1], np.full(k, R1), np.full(k, mu0)])
+
+
+def _own_shadow(p: np.ndarray, x: float, y: float, radius: float, level: float) -> np.ndarray:
+    """Where (bool, like ``p``) blob's own shadow lies: the connected region
+    of ``p`` over ``level`` (a quarter of a sphere's central chord) that
+    holds most of ``p`` within ``radius`` of (x, y), patch px. A long
+    chain's circle reaches the neighbouring rows of a grid seen edge-on,
+    whose moments turned its axis across the rows (the start diverged)."""
+    n, lab = cv2.connectedComponents((p > level).astype(np.uint8), connectivity=8)
+    if n <= 2:
+        return np.ones(p.shape, bool)
+    yy, xx = np.mgrid[0:p.shape[0], 0:p.shape[1]]
+    near = (xx - x) ** 2 + (yy - y) ** 2 <= radius**2
+    mass = np.bincount(lab[near].ravel(), weights=p[near].ravel(), minlength=n)
+    mass[0] = 0.0
+    return lab == int(np.argmax(mass)) if mass.max() > 0 else np.ones(p.shape, bool)
 
 
 def _disc(R: float) -> np.ndarray:
