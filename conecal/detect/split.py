@@ -131,6 +131,16 @@ def split_all(a: np.ndarray, ms: list, classes, mu1, blur: float, noise: float, 
     if mu1 is None:
         wait = [m for m in ms if id(m) not in split_of]
         mus = [p[3] for _, f in split_of.values() if f is not None for p in f[0]]
+        if len(mus) < _CONTRAST_PARTS and wait:
+            # (nothing but long chains, every sphere in one: their peaks guess the
+            # contrast, a sphere's central chord 2 R mu, or up to 1.5x that where two
+            # overlap; the parts of the splits it allows give it. A frame of three
+            # rows seen edge-on kept one of them)
+            first = splits(wait, float(np.median([m.peak for m in wait])) / (2 * classes[0]))
+            mus = [p[3] for _, f in first.values() if f is not None for p in f[0]]
+            if len(mus) >= _CONTRAST_PARTS:
+                split_of.update(first)
+                wait = [m for m in wait if first[id(m)][1] is None]
         if len(mus) >= _CONTRAST_PARTS:
             again = wait + [m for m in ms if id(m) in split_of and split_of[id(m)][1] is None]
             split_of.update(splits(again, float(np.median(mus))))
