@@ -12,17 +12,10 @@ from conecal.detect.noise import noise_pixel
 def _chains(seed: int):
     """Three rows of seven spheres (R 7.5 px) a third to a quarter of a
     diameter overlapping, a grid's rows seen nearly edge-on, with no sphere
-    standing alone: (frame, centres (21, 2) px)."""
-    from benchmarks.bench_two_sizes import frame
+    standing alone: (frame, centres (21, 2) px); :mod:`benchmarks.bench_chains`."""
+    from benchmarks.bench_chains import scene
 
-    rng = np.random.default_rng(seed)
-    sph = []
-    for y0 in (50.0, 130.0, 210.0):
-        ang, step = np.radians(rng.uniform(5, 20)), rng.uniform(10.0, 11.5)
-        for i in range(7):
-            c = np.array([60.0, y0]) + i * step * np.array([np.cos(ang), np.sin(ang)]) + rng.normal(0, 0.2, 2)
-            sph.append([*c, 7.5 * rng.uniform(0.97, 1.03), 0.02])
-    return frame(sph, rng, shape=(260, 200), noise=0.003), np.array(sph)[:, :2]
+    return scene(seed)
 
 
 @pytest.mark.parametrize("seed", [0, 3])
