@@ -115,7 +115,8 @@ def split_all(a: np.ndarray, ms: list, classes, mu1, blur: float, noise: float, 
     overlapping) the splits that explained their blobs give the frame's
     contrast, with which the others are split again: without it a split may
     hold only twice one sphere's attenuation (a row of seven came out in
-    threes, most of it lost); a long chain waits for that contrast."""
+    threes, most of it lost); a long chain waits for that contrast, and
+    when every blob is one, their peaks guess it for a first pass."""
     def splits(group: list, mu) -> dict:
         out = {}
         for m in group:
@@ -441,8 +442,8 @@ def _axis_chain(a, box, bg, quadratic: bool, wgt, m, R1: float, mu0: float, k: i
 
 
 def _own_shadow(p: np.ndarray, x: float, y: float, radius: float, level: float) -> np.ndarray:
-    """Where (bool, like ``p``) blob's own shadow lies: the connected region
-    of ``p`` over ``level`` (half a sphere's central chord) that
+    """Where a blob's own shadow lies (bool, shaped like ``p``): the connected
+    region of ``p`` over ``level`` (half a sphere's central chord) that
     holds most of ``p`` within ``radius`` of (x, y), patch px. A long
     chain's circle reaches the neighbouring rows of a grid seen edge-on,
     whose moments turned its axis across the rows (the start diverged)."""
