@@ -117,10 +117,14 @@ def split_all(a: np.ndarray, ms: list, classes, mu1, blur: float, noise: float, 
     hold only twice one sphere's attenuation (a row of seven came out in
     threes, most of it lost); a long chain waits for that contrast, and
     when every blob is one, their peaks guess it for a first pass."""
+    nears: dict = {}
+
     def splits(group: list, mu) -> dict:
         out = {}
         for m in group:
-            near, found = near_of(m), None
+            # (a blob split again keeps the neighbours found the first time)
+            near = nears[id(m)] = nears[id(m)] if id(m) in nears else near_of(m)
+            found = None
             for Rc in classes:
                 found = split(a, m, Rc, mu, blur, noise, kappa, near, invalid, peaks)
                 if found is not None:
@@ -128,17 +132,21 @@ def split_all(a: np.ndarray, ms: list, classes, mu1, blur: float, noise: float, 
             out[id(m)] = near, found
         return out
 
+    def contrasts(split_of: dict) -> list:
+        """The contrasts (mu per px of chord) of the parts of the splits had."""
+        return [p[3] for _, f in split_of.values() if f is not None for p in f[0]]
+
     split_of = splits([m for m in ms if mu1 is not None or m.anisotropy < LONG_CHAIN], mu1)
     if mu1 is None:
         wait = [m for m in ms if id(m) not in split_of]
-        mus = [p[3] for _, f in split_of.values() if f is not None for p in f[0]]
+        mus = contrasts(split_of)
         if len(mus) < _CONTRAST_PARTS and wait:
             # (nothing but long chains, every sphere in one: their peaks guess the
             # contrast, a sphere's central chord 2 R mu, or up to 1.5x that where two
             # overlap; the parts of the splits it allows give it. A frame of three
             # rows seen edge-on kept one of them)
             first = splits(wait, float(np.median([m.peak for m in wait])) / (2 * classes[0]))
-            mus = [p[3] for _, f in first.values() if f is not None for p in f[0]]
+            mus = contrasts(first)
             if len(mus) >= _CONTRAST_PARTS:
                 split_of.update(first)
                 wait = [m for m in wait if first[id(m)][1] is None]
